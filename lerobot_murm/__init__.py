@@ -1,0 +1,9 @@
+"""lerobot-murm: multi-view goal-conditioned offline RL (MURM) as a LeRobot plugin.
+
+Importing this package registers the gymnasium ids `murm/*-v0` and the LeRobot
+env type `murm`.
+"""
+
+from lerobot_murm.env import configuration_env  # noqa: F401  (registers the `murm` env type)
+
+__version__ = "0.1.0"

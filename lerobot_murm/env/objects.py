@@ -32,7 +32,12 @@ def create_table(client) -> int:
 
 
 def create_tray(client, centre: np.ndarray, rgba=TRAY_RGBA) -> int:
-    """A static open box: `centre` is the middle of its floor's top face."""
+    """A static open box: `centre` is the middle of its floor's top face.
+
+    Collision is five boxes; the visual is one mesh of the 26 triangles a viewer can
+    see (a box-per-wall visual has 60), which matters because the CPU renderer's cost
+    grows with triangles and nine trays are on screen in `place_in_box`.
+    """
     inner, wall, height, floor = TRAY_INNER, TRAY_WALL, TRAY_WALL_HEIGHT, TRAY_FLOOR
     outer_half = inner / 2 + wall
     parts = [  # (half extents, offset from the floor's top-face centre)
@@ -42,18 +47,43 @@ def create_tray(client, centre: np.ndarray, rgba=TRAY_RGBA) -> int:
         ([inner / 2, wall / 2, height / 2], [0, inner / 2 + wall / 2, height / 2]),
         ([inner / 2, wall / 2, height / 2], [0, -inner / 2 - wall / 2, height / 2]),
     ]
-    halves = [p[0] for p in parts]
-    offsets = [p[1] for p in parts]
     col = client.createCollisionShapeArray(
-        shapeTypes=[pybullet.GEOM_BOX] * len(parts), halfExtents=halves, collisionFramePositions=offsets
-    )
-    vis = client.createVisualShapeArray(
         shapeTypes=[pybullet.GEOM_BOX] * len(parts),
-        halfExtents=halves,
-        visualFramePositions=offsets,
-        rgbaColors=[rgba] * len(parts),
+        halfExtents=[p[0] for p in parts],
+        collisionFramePositions=[p[1] for p in parts],
+    )
+    vertices, normals, indices = _tray_mesh(inner / 2, outer_half, height, floor)
+    vis = client.createVisualShape(
+        pybullet.GEOM_MESH, vertices=vertices, normals=normals, indices=indices, rgbaColor=rgba
     )
     return client.createMultiBody(0, col, vis, basePosition=list(centre))
+
+
+def _tray_mesh(i: float, o: float, h: float, f: float) -> tuple[list[list[float]], list[list[float]], list[int]]:
+    """Floor top, and per side: outer face, inner face and rim top, each facing outwards."""
+    up, inward, outward = (0, 0, 1), (-1, 0, 0), (1, 0, 0)
+    side = [  # the +x side; the other three are it turned about z
+        ([(o, -o, -f), (o, o, -f), (o, o, h), (o, -o, h)], outward),
+        ([(i, -i, 0), (i, i, 0), (i, i, h), (i, -i, h)], inward),
+        ([(i, -i, h), (o, -o, h), (o, o, h), (i, i, h)], up),
+    ]
+    quads = [([(-i, -i, 0), (i, -i, 0), (i, i, 0), (-i, i, 0)], up)]
+    for quarter in range(4):
+        c, s = np.cos(quarter * np.pi / 2), np.sin(quarter * np.pi / 2)
+        turn = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        quads += [([turn @ np.array(v) for v in corners], turn @ np.array(normal)) for corners, normal in side]
+    vertices: list[list[float]] = []
+    normals: list[list[float]] = []  # one per vertex, the face's own: flat shading, crisp edges
+    indices: list[int] = []
+    for corners, normal in quads:
+        a, b, c_ = (np.array(v, dtype=float) for v in corners[:3])
+        if np.dot(np.cross(b - a, c_ - a), normal) < 0:
+            corners = corners[::-1]  # counter-clockwise seen from where the face looks
+        base = len(vertices)
+        vertices += [[float(x) for x in v] for v in corners]
+        normals += [[float(x) for x in normal]] * 4
+        indices += [base, base + 1, base + 2, base, base + 2, base + 3]
+    return vertices, normals, indices
 
 
 def create_pedestal(client, top_centre: np.ndarray, half_width: float) -> int:

@@ -42,7 +42,7 @@ def lowpoly_panda_urdf() -> Path:
     text = STOCK_URDF.read_text()
     text = text.replace("package://meshes/visual/", f"{mesh_dir}/collision/")
     text = text.replace("package://meshes/collision/", f"{mesh_dir}/collision/")
-    out_dir = Path(tempfile.gettempdir()) / "lerobot_murm"
+    out_dir = Path(tempfile.gettempdir()) / "lerobot-murm-assets"  # not an importable name
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "panda_lowpoly.urdf"
     if not path.exists() or path.read_text() != text:

@@ -16,7 +16,7 @@ def _demo(args: argparse.Namespace) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="murm", description="MURM: multi-view goal-conditioned offline RL")
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    commands = parser.add_subparsers(dest="command", required=True)
 
     demo = commands.add_parser("demo", help="render every task's cameras and goals, run one expert episode each")
     demo.add_argument("--out", default="outputs/demo", help="folder for the PNGs (default: %(default)s)")

@@ -35,6 +35,11 @@ STATE_DIM = 4  # end-effector xyz, finger opening
 ENV_STATE_DIM = 6  # object xyz, goal xyz
 MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 8, 512
 WORLD_LIMIT_M = 3.0  # bound of object coordinates; the table is 2 m wide
+TASK_DESCRIPTIONS = {
+    "place_in_box": "put the cube into the box shown in the goal images",
+    "place_in_random_box": "put the cube into the box shown in the goal images",
+    "pick_up": "pick up the object that is lifted in the goal images",
+}
 
 
 def goal_key(camera: str) -> str:
@@ -150,11 +155,7 @@ class MurmEnv(gym.Env):
     # --- LeRobot hooks -----------------------------------------------------------------
     @property
     def task_description(self) -> str:
-        return {
-            "place_in_box": "put the cube into the box shown in the goal images",
-            "place_in_random_box": "put the cube into the box shown in the goal images",
-            "pick_up": "pick up the object that is lifted in the goal images",
-        }[self.task_name]
+        return TASK_DESCRIPTIONS[self.task_name]
 
     # --- internals ---------------------------------------------------------------------
     def _ee_position(self) -> np.ndarray:

@@ -1,0 +1,6 @@
+"""Demonstrations: the noisy scripted expert's episodes written as a LeRobotDataset."""
+
+from lerobot_murm.collection.collect import CollectConfig, collect
+from lerobot_murm.collection.episodes import Episode, EpisodeRecipe, run_episode
+
+__all__ = ["CollectConfig", "Episode", "EpisodeRecipe", "collect", "run_episode"]

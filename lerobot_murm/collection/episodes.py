@@ -1,0 +1,86 @@
+"""One demonstration episode, fully determined by (base seed, episode index) and the recipe.
+
+`run_episode` is what a collection worker runs: it needs no shared state, so the
+dataset is the same whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lerobot_murm.env import EPISODE_STEPS, MurmEnv, goal_key
+from lerobot_murm.expert import ScriptedExpert, noisy_action
+
+
+@dataclass(frozen=True)
+class EpisodeRecipe:
+    """How every episode of a collection is made."""
+
+    task: str
+    cameras: tuple[str, ...]
+    image_size: int = 48
+    base_seed: int = 0
+    noise_k: float = 1.0  # paper 4.1: a = clip(a* + k N(0, 0.1), -1, 1)
+    noisy_fraction: float = 1.0  # share of episodes with noise (Table 7 varies it)
+
+    def episode_seeds(self, index: int) -> tuple[int, np.random.Generator]:
+        """The env seed and the noise generator of episode `index`: from base seed and index alone."""
+        sequence = np.random.SeedSequence([self.base_seed, index])
+        env_seed = int(sequence.generate_state(1)[0])
+        return env_seed, np.random.default_rng(sequence.spawn(1)[0])
+
+
+@dataclass
+class Episode:
+    index: int
+    env_seed: int
+    noisy: bool
+    images: dict[str, np.ndarray]  # camera -> (T, H, W, 3) uint8
+    goal_images: dict[str, np.ndarray]  # camera -> (H, W, 3) uint8
+    state: np.ndarray  # (T, 4)
+    environment_state: np.ndarray  # (T, 6)
+    action: np.ndarray  # (T, 4)
+    success: np.ndarray  # (T,) task success after each action
+
+    @property
+    def succeeded(self) -> bool:
+        """Success at any step, the rule lerobot-eval applies."""
+        return bool(self.success.any())
+
+
+_ENV_CACHE: dict[tuple, MurmEnv] = {}
+
+
+def _env_for(recipe: EpisodeRecipe) -> MurmEnv:
+    """One simulator per process, reused across episodes (reset rebuilds the scene)."""
+    key = (recipe.task, recipe.cameras, recipe.image_size)
+    if key not in _ENV_CACHE:
+        _ENV_CACHE[key] = MurmEnv(task=recipe.task, cameras=recipe.cameras, image_size=recipe.image_size)
+    return _ENV_CACHE[key]
+
+
+def run_episode(recipe: EpisodeRecipe, index: int) -> Episode:
+    env_seed, rng = recipe.episode_seeds(index)
+    noisy = bool(rng.random() < recipe.noisy_fraction)
+    env = _env_for(recipe)
+    expert = ScriptedExpert(recipe.task)
+    obs, _ = env.reset(seed=env_seed)
+    images = {c: np.empty((EPISODE_STEPS, recipe.image_size, recipe.image_size, 3), np.uint8) for c in recipe.cameras}
+    goal_images = {c: obs["pixels"][goal_key(c)] for c in recipe.cameras}
+    state = np.empty((EPISODE_STEPS, 4), np.float32)
+    environment_state = np.empty((EPISODE_STEPS, 6), np.float32)
+    action = np.empty((EPISODE_STEPS, 4), np.float32)
+    success = np.empty(EPISODE_STEPS, bool)
+    for t in range(EPISODE_STEPS):
+        for camera in recipe.cameras:
+            images[camera][t] = obs["pixels"][camera]
+        state[t], environment_state[t] = obs["agent_pos"], obs["environment_state"]
+        act = expert.act(obs)
+        if noisy:
+            act = noisy_action(act, recipe.noise_k, rng)
+        action[t] = act
+        obs, _, _, _, info = env.step(act)
+        success[t] = info["is_success"]
+    return Episode(index, env_seed, noisy, images, goal_images, state, environment_state, action, success)

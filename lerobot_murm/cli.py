@@ -29,6 +29,7 @@ def _collect(args: argparse.Namespace) -> None:
         seed=args.seed,
         noise_k=args.noise_k,
         noisy_fraction=args.noisy_fraction,
+        noise_std=args.noise_std,
         resume=args.resume,
         overwrite=args.overwrite,
     )
@@ -37,6 +38,28 @@ def _collect(args: argparse.Namespace) -> None:
     except CollectionInterrupted as stop:
         raise SystemExit(f"murm collect: {stop}") from None
     print(f"{summary['episodes']} episodes in {config.root}, expert success {summary['success_rate']:.1%}")
+    if args.push_to_hub:
+        _push(argparse.Namespace(root=args.root, repo_id=config.repo_id, private=args.private))
+
+
+def _push(args: argparse.Namespace) -> None:
+    from lerobot_murm.collection.hub import HubUnavailable, push_dataset
+
+    try:
+        push_dataset(Path(args.root), args.repo_id, private=args.private)
+    except HubUnavailable as error:
+        raise SystemExit(f"murm push: {error}") from None
+    print(f"pushed {args.root} to https://huggingface.co/datasets/{args.repo_id}")
+
+
+def _pull(args: argparse.Namespace) -> None:
+    from lerobot_murm.collection.hub import HubUnavailable, pull_dataset
+
+    try:
+        dataset = pull_dataset(args.repo_id, Path(args.root))
+    except HubUnavailable as error:
+        raise SystemExit(f"murm pull: {error}") from None
+    print(f"pulled {args.repo_id} into {args.root}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -57,11 +80,25 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--cameras", default="global,adjacent,side,top,active", help="comma-separated (default: all five)")
     col.add_argument("--image-size", type=int, default=48)
     col.add_argument("--seed", type=int, default=0, help="base seed: episode i depends on it and i alone")
-    col.add_argument("--noise-k", type=float, default=1.0, help="expert noise k in a* + k N(0, 0.1) (default: 1)")
+    col.add_argument("--noise-k", type=float, default=1.0, help="expert noise k in a* + k N(0, std) (default: 1)")
+    col.add_argument("--noise-std", type=float, default=0.1, help="noise std (default: the paper's 0.1)")
     col.add_argument("--noisy-fraction", type=float, default=1.0, help="share of noisy episodes (default: 1)")
     col.add_argument("--resume", action="store_true", help="carry on an interrupted or shorter collection")
     col.add_argument("--overwrite", action="store_true", help="delete an existing dataset at --root first")
+    col.add_argument("--push-to-hub", action="store_true", help="push to --repo-id when done")
+    col.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
     col.set_defaults(func=_collect)
+
+    push = commands.add_parser("push", help="push a collected dataset and its card to the Hugging Face Hub")
+    push.add_argument("--root", required=True, help="the dataset folder")
+    push.add_argument("--repo-id", required=True, help="e.g. user/murm_place_in_box")
+    push.add_argument("--private", action="store_true")
+    push.set_defaults(func=_push)
+
+    pull = commands.add_parser("pull", help="download a dataset from the Hugging Face Hub")
+    pull.add_argument("--repo-id", required=True)
+    pull.add_argument("--root", required=True, help="folder to download into")
+    pull.set_defaults(func=_pull)
     return parser
 
 

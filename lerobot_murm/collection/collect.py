@@ -45,6 +45,7 @@ class CollectConfig:
     seed: int = 0
     noise_k: float = 1.0
     noisy_fraction: float = 1.0
+    noise_std: float = 0.1
     resume: bool = False
     overwrite: bool = False
 
@@ -57,6 +58,8 @@ class CollectConfig:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
         if self.noise_k < 0:
             raise ValueError(f"noise_k must be >= 0, got {self.noise_k}")
+        if self.noise_std < 0:
+            raise ValueError(f"noise_std must be >= 0, got {self.noise_std}")
         if not 0.0 <= self.noisy_fraction <= 1.0:
             raise ValueError(f"noisy_fraction must be in [0, 1], got {self.noisy_fraction}")
         if self.resume and self.overwrite:
@@ -75,6 +78,7 @@ class CollectConfig:
             base_seed=self.seed,
             noise_k=self.noise_k,
             noisy_fraction=self.noisy_fraction,
+            noise_std=self.noise_std,
         )
 
 

@@ -22,8 +22,9 @@ class EpisodeRecipe:
     cameras: tuple[str, ...]
     image_size: int = 48
     base_seed: int = 0
-    noise_k: float = 1.0  # paper 4.1: a = clip(a* + k N(0, 0.1), -1, 1)
+    noise_k: float = 1.0  # paper 4.1: a = clip(a* + k N(0, noise_std), -1, 1)
     noisy_fraction: float = 1.0  # share of episodes with noise (Table 7 varies it)
+    noise_std: float = 0.1  # the paper's 0.1; larger values give more failed demonstrations
 
     def episode_seeds(self, index: int) -> tuple[int, np.random.Generator]:
         """The env seed and the noise generator of episode `index`: from base seed and index alone."""
@@ -79,7 +80,7 @@ def run_episode(recipe: EpisodeRecipe, index: int) -> Episode:
         state[t], environment_state[t] = obs["agent_pos"], obs["environment_state"]
         act = expert.act(obs)
         if noisy:
-            act = noisy_action(act, recipe.noise_k, rng)
+            act = noisy_action(act, recipe.noise_k, rng, recipe.noise_std)
         action[t] = act
         obs, _, _, _, info = env.step(act)
         success[t] = info["is_success"]

@@ -90,7 +90,7 @@ def _reached(a: np.ndarray, b: np.ndarray, tolerance: float = POSITION_TOLERANCE
     return bool(np.linalg.norm(np.asarray(a) - np.asarray(b)) < tolerance)
 
 
-def noisy_action(action: np.ndarray, k: float, rng: np.random.Generator) -> np.ndarray:
-    """Paper 4.1: a = clip(a* + k * N(0, 0.1), -1, 1)."""
-    noise = rng.normal(0.0, 0.1, size=np.shape(action))
+def noisy_action(action: np.ndarray, k: float, rng: np.random.Generator, std: float = 0.1) -> np.ndarray:
+    """Paper 4.1: a = clip(a* + k * N(0, std), -1, 1), with the paper's std = 0.1 by default."""
+    noise = rng.normal(0.0, std, size=np.shape(action))
     return np.clip(np.asarray(action) + k * noise, -1.0, 1.0).astype(np.float32)

@@ -1,0 +1,53 @@
+"""The dataset card: `datasets_cards/murm_demonstrations.md` filled from the collection summary.
+
+It becomes the description section of LeRobot's own dataset card (`push_to_hub`
+renders LeRobot's template around it, with the dataset structure).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from string import Template
+
+from lerobot_murm.env.cameras import CAMERAS, EndEffectorCamera
+from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, TASK_DESCRIPTIONS
+
+TEMPLATE = Path(__file__).resolve().parents[2] / "datasets_cards" / "murm_demonstrations.md"
+
+SUCCESS_RULES = {
+    "place_in_box": "the cube's centre within 3 cm of the goal box's centre (one of nine boxes)",
+    "place_in_random_box": "the cube's centre within 5 cm of the centre of a box placed at random in 3-D",
+    "pick_up": "the target object (one of three shapes) lifted 5 cm above where it started",
+}
+
+
+def render_card(summary: dict, repo_id: str) -> str:
+    recipe = summary["recipe"]
+    cameras = recipe["cameras"]
+    rows = []
+    for camera in cameras:
+        mount = "on the hand" if isinstance(CAMERAS[camera], EndEffectorCamera) else "fixed to the world"
+        rows.append(f"| `observation.images.{camera}`, `observation.images.{camera}_goal` | {camera} camera, {mount} |")
+    rate = summary["success_rate"]
+    command = (
+        f"murm collect --task {recipe['task']} --episodes {summary['episodes']} --seed {recipe['base_seed']} "
+        f"--noise-k {recipe['noise_k']} --noise-std {recipe['noise_std']} --noisy-fraction {recipe['noisy_fraction']} --cameras {','.join(cameras)}"
+    )
+    return Template(TEMPLATE.read_text()).substitute(
+        task=recipe["task"],
+        task_text=TASK_DESCRIPTIONS[recipe["task"]].capitalize() + ".",
+        success_rule=SUCCESS_RULES[recipe["task"]],
+        episodes=summary["episodes"],
+        episode_steps=EPISODE_STEPS,
+        fps=CONTROL_FPS,
+        success_rate="n/a" if rate is None else f"{rate:.1%}",
+        n_cameras=len(cameras),
+        image_size=recipe["image_size"],
+        camera_rows="\n".join(rows),
+        noise_k=recipe["noise_k"],
+        noise_std=recipe["noise_std"],
+        noisy_percent=f"{recipe['noisy_fraction']:.0%}",
+        base_seed=recipe["base_seed"],
+        repo_id=repo_id,
+        command=command,
+    )

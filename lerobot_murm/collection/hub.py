@@ -1,0 +1,59 @@
+"""Push a collected dataset to the Hugging Face Hub with its card, and pull one by repo id.
+
+Both go through LeRobot's own code (`LeRobotDataset.push_to_hub`, and the download a
+`LeRobotDataset` does when its files are not on disk). Network and authentication
+failures become one clear `HubUnavailable` message: the local dataset is unaffected.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import httpx
+from huggingface_hub import constants
+from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from lerobot_murm.collection.card import render_card
+from lerobot_murm.collection.dataset import SUMMARY_FILE
+
+HUB_ERRORS = (httpx.HTTPError, HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled, OSError)
+
+
+class HubUnavailable(RuntimeError):
+    """The Hub could not be reached or refused the request."""
+
+
+def push_dataset(root: Path, repo_id: str, private: bool = False) -> str:
+    """Upload the dataset at `root` as `repo_id`, with the MURM card; returns the card text."""
+    root = Path(root)
+    summary = json.loads((root / SUMMARY_FILE).read_text())
+    card = render_card(summary, repo_id)
+    dataset = LeRobotDataset(repo_id, root=root, video_backend="pyav")
+    try:
+        dataset.push_to_hub(
+            private=private,
+            tags=["murm", "goal-conditioned", "multi-view", "offline-rl", summary["recipe"]["task"]],
+            license="apache-2.0",
+            dataset_description=card,
+        )
+    except HUB_ERRORS as error:
+        raise HubUnavailable(_explain(error, f"push {root} to {repo_id}")) from error
+    return card
+
+
+def pull_dataset(repo_id: str, root: Path) -> LeRobotDataset:
+    """Download `repo_id` into `root` (LeRobot's own download) and return it, ready to read."""
+    try:
+        return LeRobotDataset(repo_id, root=Path(root), video_backend="pyav")
+    except HUB_ERRORS as error:
+        raise HubUnavailable(_explain(error, f"pull {repo_id}")) from error
+
+
+def _explain(error: Exception, action: str) -> str:
+    return (
+        f"could not {action}: the Hugging Face Hub at {constants.ENDPOINT} is unreachable or refused "
+        f"({type(error).__name__}: {error}). Check the network and your token (`hf auth login` or HF_TOKEN); "
+        "local datasets are unaffected."
+    )

@@ -1,7 +1,8 @@
 """`murm collect`: run the noisy expert in parallel workers and write a LeRobotDataset.
 
-Workers only simulate (one simulator per process); the main process writes episodes
-in index order, so the dataset does not depend on the number of workers. Ctrl-C,
+Workers simulate (one simulator per process) and encode their episode's PNGs; the
+main process appends episodes in index order, so the dataset does not depend on the
+number of workers. Ctrl-C,
 SIGTERM or a dead worker stop the run cleanly: the episodes already written are
 finalized into a valid dataset, the half-done ones are dropped, and `resume=True`
 carries on to the requested count.
@@ -27,7 +28,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
 from lerobot_murm.collection import dataset as murm_dataset
-from lerobot_murm.collection.episodes import Episode, EpisodeRecipe, run_episode
+from lerobot_murm.collection.dataset import StagedEpisode
+from lerobot_murm.collection.episodes import EpisodeRecipe, run_episode
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES, MurmEnv
 from lerobot_murm.env.murm_env import TASK_DESCRIPTIONS
 from lerobot_murm.env.cameras import validate_camera_names
@@ -100,7 +102,7 @@ def collect(config: CollectConfig) -> dict:
     with _deferred_stop_signals() as stop_requested:
         try:
             for written, episode in enumerate(_episodes(config, range(done, config.episodes)), start=1):
-                murm_dataset.append_episode(dataset, episode, description)  # never cut in half
+                murm_dataset.save_staged_episode(dataset, episode, description)  # never cut in half
                 successes += episode.succeeded
                 progress.set_postfix(
                     ep_per_s=f"{written / (time.perf_counter() - start):.2f}", success=f"{successes / written:.0%}"
@@ -114,6 +116,7 @@ def collect(config: CollectConfig) -> dict:
         finally:
             progress.close()
             dataset.finalize()
+            shutil.rmtree(murm_dataset.staging_root(config.root), ignore_errors=True)  # unsaved work
 
     summary = murm_dataset.write_summary(
         config.root,
@@ -158,12 +161,18 @@ def _check_writable(root: Path) -> None:
         raise PermissionError(f"cannot create {root}: {parent} is not writable")
 
 
-def _episodes(config: CollectConfig, indices: range) -> Iterator[Episode]:
-    """Episodes in index order, simulated in `config.workers` processes (in this one if 1)."""
+def simulate_and_stage(recipe: EpisodeRecipe, index: int, dataset_root: Path) -> StagedEpisode:
+    """A worker's job: one episode, its images encoded to PNG files."""
+    return murm_dataset.stage_episode(run_episode(recipe, index), dataset_root)
+
+
+def _episodes(config: CollectConfig, indices: range) -> Iterator[StagedEpisode]:
+    """Staged episodes in index order, made in `config.workers` processes (in this one if 1)."""
     recipe = config.recipe
+    shutil.rmtree(murm_dataset.staging_root(config.root), ignore_errors=True)
     if config.workers == 1:
         for index in indices:
-            yield run_episode(recipe, index)
+            yield simulate_and_stage(recipe, index, config.root)
         return
     context = get_context("forkserver")
     with ProcessPoolExecutor(config.workers, mp_context=context, initializer=_ignore_sigint) as pool:
@@ -175,7 +184,7 @@ def _episodes(config: CollectConfig, indices: range) -> Iterator[Episode]:
                     next_index = next(upcoming, None)
                     if next_index is None:
                         break
-                    pending[next_index] = pool.submit(run_episode, recipe, next_index)
+                    pending[next_index] = pool.submit(simulate_and_stage, recipe, next_index, config.root)
                 yield pending.pop(index).result()
         finally:
             for future in pending.values():

@@ -1,17 +1,26 @@
-"""The LeRobotDataset layout of MURM demonstrations: features, frames, and the collection summary.
+"""The LeRobotDataset layout of MURM demonstrations: features, episodes, and the collection summary.
 
 Images are stored as PNG inside the parquet files (LeRobot's `image` dtype), not as
 video: at 48x48 PNG is smaller on disk than AV1 and about 25x cheaper to read per
 sample (see BENCHMARKS.md).
+
+Writing is split so that the expensive part runs in the collection workers:
+`stage_episode` (worker) encodes an episode's PNGs with LeRobot's own `write_image`,
+as LeRobot's image writer would, into a staging folder under the dataset's
+`images/` (which `push_to_hub` never uploads); `save_staged_episode` (main process)
+hands them to `LeRobotDataset.save_episode` as a pre-built episode, which embeds them
+in parquet and computes the statistics. A goal image is encoded once per episode.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
+import shutil
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from lerobot.datasets.image_writer import write_image
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.collection.episodes import Episode, EpisodeRecipe
@@ -19,6 +28,8 @@ from lerobot_murm.env import goal_key
 from lerobot_murm.env.murm_env import CONTROL_FPS
 
 SUMMARY_FILE = "meta/murm_collection.json"
+STAGING_DIR = "images/murm-staging"
+PNG_COMPRESS_LEVEL = 6  # what LeRobot's writer uses for `image` features
 IMAGE_NAMES = ["height", "width", "channels"]
 
 
@@ -62,22 +73,76 @@ def create_dataset(repo_id: str, root: Path, recipe: EpisodeRecipe) -> LeRobotDa
     )
 
 
-def append_episode(dataset: LeRobotDataset, episode: Episode, task_description: str) -> None:
+@dataclass
+class StagedEpisode:
+    """An episode whose images are PNG files on disk: what a worker sends to the writer."""
+
+    index: int
+    noisy: bool
+    images: dict[str, list[str]]  # feature key -> one PNG path per frame
+    state: np.ndarray
+    environment_state: np.ndarray
+    action: np.ndarray
+    success: np.ndarray
+    folder: str
+
+    @property
+    def succeeded(self) -> bool:
+        return bool(self.success.any())
+
+
+def staging_root(dataset_root: Path) -> Path:
+    return Path(dataset_root) / STAGING_DIR
+
+
+def stage_episode(episode: Episode, dataset_root: Path) -> StagedEpisode:
+    folder = staging_root(dataset_root) / f"episode-{episode.index:06d}"
+    images: dict[str, list[str]] = {}
+    for camera, frames in episode.images.items():
+        paths = [folder / camera / f"frame-{t:06d}.png" for t in range(len(frames))]
+        paths[0].parent.mkdir(parents=True, exist_ok=True)
+        for frame, path in zip(frames, paths, strict=True):
+            write_image(frame, path, compress_level=PNG_COMPRESS_LEVEL)
+        images[image_key(camera)] = [str(p) for p in paths]
+        goal_path = folder / f"{camera}_goal.png"
+        write_image(episode.goal_images[camera], goal_path, compress_level=PNG_COMPRESS_LEVEL)
+        images[goal_image_key(camera)] = [str(goal_path)] * len(frames)
+    return StagedEpisode(
+        episode.index,
+        episode.noisy,
+        images,
+        episode.state,
+        episode.environment_state,
+        episode.action,
+        episode.success,
+        str(folder),
+    )
+
+
+def save_staged_episode(dataset: LeRobotDataset, episode: StagedEpisode, task_description: str) -> None:
+    """Append one episode through `LeRobotDataset.save_episode`, then drop its staged PNGs."""
     steps = len(episode.action)
-    for t in range(steps):
-        frame = {image_key(c): episode.images[c][t] for c in episode.images}
-        frame |= {goal_image_key(c): image for c, image in episode.goal_images.items()}
-        frame |= {
-            "observation.state": episode.state[t],
-            "observation.environment_state": episode.environment_state[t],
-            "action": episode.action[t],
-            "next.reward": np.array([float(episode.success[t])], np.float32),
-            "next.done": np.array([t == steps - 1]),
-            "next.success": np.array([episode.success[t]]),
-            "task": task_description,
+    last = np.zeros((steps, 1), bool)
+    last[-1] = True
+    dataset.save_episode(
+        {
+            "size": steps,
+            "task": [task_description] * steps,
+            "episode_index": dataset.meta.total_episodes,
+            "index": [],  # index and task_index are filled in by save_episode
+            "task_index": [],
+            "frame_index": np.arange(steps),
+            "timestamp": np.arange(steps, dtype=np.float32) / dataset.meta.fps,
+            **episode.images,
+            "observation.state": episode.state,
+            "observation.environment_state": episode.environment_state,
+            "action": episode.action,
+            "next.reward": episode.success.astype(np.float32).reshape(steps, 1),
+            "next.done": last,
+            "next.success": episode.success.reshape(steps, 1),
         }
-        dataset.add_frame(frame)
-    dataset.save_episode()
+    )
+    shutil.rmtree(episode.folder)
 
 
 def episode_successes(repo_id: str, root: Path) -> np.ndarray:

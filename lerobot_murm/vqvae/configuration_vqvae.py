@@ -1,0 +1,45 @@
+"""VQ-VAE configuration (paper 3.1 and 4.2): 48x48x3 images to a 12x12 grid of 5-dim codes."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+
+@dataclass
+class VQVAEConfig:
+    """Architecture and training settings; saved beside the weights so a checkpoint describes itself."""
+
+    camera: str = "global"
+    image_size: int = 48
+    hidden_channels: int = 64  # after the second strided convolution
+    residual_channels: int = 32
+    num_residual_blocks: int = 1  # in the encoder; the decoder has one more
+    embedding_dim: int = 5  # paper: 12 x 12 x 5 = 720 numbers per image
+    codebook_size: int = 512
+    commitment_cost: float = 0.25
+    ema_decay: float = 0.99  # EMA codebook updates (van den Oord et al. 2017, appendix)
+    dead_code_threshold: float = 1.0  # codes used less than this (EMA count) are restarted
+    # training
+    steps: int = 6000
+    batch_size: int = 128
+    learning_rate: float = 1e-3
+    holdout_fraction: float = 0.05  # whole episodes kept out for validation
+    seed: int = 0
+    dataset: dict = field(default_factory=dict)  # what it was trained on (repo id, root, fingerprint)
+
+    @property
+    def grid_size(self) -> int:
+        return self.image_size // 4  # two stride-2 convolutions
+
+    @property
+    def latent_dim(self) -> int:
+        return self.embedding_dim * self.grid_size**2
+
+    def save(self, path: Path) -> None:
+        Path(path).write_text(json.dumps(asdict(self), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path: Path) -> VQVAEConfig:
+        return cls(**json.loads(Path(path).read_text()))

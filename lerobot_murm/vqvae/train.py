@@ -1,0 +1,145 @@
+"""`murm train-vqvae`: fit one camera's VQ-VAE on its frames and goal images.
+
+Whole episodes are held out for validation. The checkpoint folder gets the weights and
+config (safetensors + JSON), `metrics.json` (held-out MSE and PSNR, codebook usage,
+training speed) and `reconstructions.png` (held-out originals over reconstructions,
+the paper's Figure 4).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig  # noqa: E402
+from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset  # noqa: E402
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE  # noqa: E402
+
+LOG_EVERY = 50
+
+
+def split_episodes(frames: CameraFrames, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Training and held-out image arrays; held-out = all frames and goals of a few whole episodes."""
+    episodes = np.unique(frames.episode_index)
+    n_held = max(1, int(round(fraction * len(episodes)))) if len(episodes) > 1 else 0
+    held = np.random.default_rng(seed).choice(episodes, size=n_held, replace=False)
+    in_held = np.isin(frames.episode_index, held)
+    goal_held = np.isin(np.arange(len(frames.goals)), held)
+    train = np.concatenate([frames.images[~in_held], frames.goals[~goal_held]])
+    holdout = np.concatenate([frames.images[in_held], frames.goals[goal_held]]) if n_held else frames.images[:0]
+    return train, holdout
+
+
+def codebook_usage(indices: torch.Tensor, codebook_size: int) -> tuple[float, int]:
+    """Perplexity of the code distribution and the number of codes never used."""
+    counts = torch.bincount(indices.reshape(-1), minlength=codebook_size).float()
+    probs = counts / counts.sum()
+    perplexity = torch.exp(-(probs[probs > 0] * probs[probs > 0].log()).sum()).item()
+    return perplexity, int((counts == 0).sum())
+
+
+@torch.no_grad()
+def evaluate(model: VQVAE, images: np.ndarray, device: torch.device, batch: int = 1024) -> dict:
+    model.eval()
+    squared, indices = [], []
+    for start in range(0, len(images), batch):
+        x = torch.from_numpy(images[start : start + batch]).to(device)
+        out = model(x)
+        target = model.postprocess(model.preprocess(x))
+        squared.append((model.postprocess(out["reconstruction"]) - target).pow(2).mean(dim=(1, 2, 3)).cpu())
+        indices.append(out["indices"].cpu())
+    mse = torch.cat(squared)
+    perplexity, dead = codebook_usage(torch.cat(indices), model.config.codebook_size)
+    model.train()
+    return {
+        "mse": float(mse.mean()),
+        "psnr_db": float(10 * torch.log10(1.0 / mse.mean())),
+        "perplexity": perplexity,
+        "unused_codes": dead,
+        "images": len(images),
+    }
+
+
+def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: int = 12) -> None:
+    picks = images[np.linspace(0, len(images) - 1, count).astype(int)]
+    with torch.no_grad():
+        model.eval()
+        recon = model.postprocess(model(torch.from_numpy(picks))["reconstruction"]).permute(0, 2, 3, 1).numpy()
+        model.train()
+    fig, axes = plt.subplots(2, count, figsize=(1.2 * count, 2.7))
+    for i in range(count):
+        for row, image in ((0, picks[i]), (1, recon[i])):
+            axes[row, i].imshow(image, interpolation="nearest")
+            axes[row, i].set_xticks([]), axes[row, i].set_yticks([])
+    axes[0, 0].set_ylabel("original", fontsize=8)
+    axes[1, 0].set_ylabel("VQ-VAE", fontsize=8)
+    fig.suptitle(f"{model.config.camera} camera, held-out episodes", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def train_vqvae(
+    repo_id: str, root: Path | None, camera: str, out_dir: Path, config: VQVAEConfig | None = None, device: str = "auto"
+) -> dict:
+    """Train, evaluate and save; returns the metrics. Ctrl-C stops early and still saves."""
+    device = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else "cpu" if device == "auto" else device)
+    dataset = open_dataset(repo_id, root)
+    frames = load_camera_frames(dataset, camera)
+    config = replace(
+        config or VQVAEConfig(),
+        camera=camera,
+        image_size=int(frames.images.shape[1]),
+        dataset={"repo_id": repo_id, "root": str(dataset.root), "fingerprint": dataset_fingerprint(dataset)},
+    )
+    train_images, holdout = split_episodes(frames, config.holdout_fraction, config.seed)
+    torch.manual_seed(config.seed)
+    rng = np.random.default_rng(config.seed)
+    model = VQVAE(config).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.steps)
+
+    start, step, interrupted = time.perf_counter(), 0, False
+    progress = tqdm(range(config.steps), desc=f"vq-vae {camera}", unit="step")
+    try:
+        for step in progress:
+            batch = torch.from_numpy(train_images[rng.integers(0, len(train_images), config.batch_size)]).to(device)
+            out = model(batch)
+            optimizer.zero_grad(set_to_none=True)
+            out["loss"].backward()
+            optimizer.step()
+            schedule.step()
+            if step % LOG_EVERY == 0:
+                perplexity, dead = codebook_usage(out["indices"], config.codebook_size)
+                mse = out["recon_loss"].item()  # on the [-0.5, 0.5] range = MSE on [0, 1]
+                progress.set_postfix(mse=f"{mse:.5f}", psnr=f"{10 * np.log10(1 / mse):.1f}", ppl=f"{perplexity:.0f}", dead=dead)
+    except KeyboardInterrupt:
+        interrupted = True
+    elapsed = time.perf_counter() - start
+    progress.close()
+
+    out_dir = Path(out_dir)
+    model.save(out_dir)
+    metrics = {
+        "camera": camera,
+        "steps": step + 1,
+        "interrupted": interrupted,
+        "train_seconds": elapsed,
+        "train_images_per_s": (step + 1) * config.batch_size / elapsed,
+        "train_images": len(train_images),
+        "heldout": evaluate(model, holdout if len(holdout) else train_images[:1024], device),
+        "device": str(device),
+    }
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    save_reconstructions(model.cpu(), holdout if len(holdout) else train_images, out_dir / "reconstructions.png")
+    return metrics

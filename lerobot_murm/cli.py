@@ -62,6 +62,50 @@ def _pull(args: argparse.Namespace) -> None:
     print(f"pulled {args.repo_id} into {args.root}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames")
 
 
+def _dataset_location(value: str) -> tuple[str, Path | None]:
+    """`--dataset` takes a local dataset folder or a Hub repo id."""
+    path = Path(value)
+    return (f"local/{path.name}", path) if path.exists() else (value, None)
+
+
+def _train_vqvae(args: argparse.Namespace) -> None:
+    from dataclasses import replace
+
+    from lerobot_murm.vqvae import VQVAEConfig
+    from lerobot_murm.vqvae.train import train_vqvae
+
+    repo_id, root = _dataset_location(args.dataset)
+    out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{args.camera}")
+    config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
+    metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
+    held = metrics["heldout"]
+    print(
+        f"{args.camera}: held-out PSNR {held['psnr_db']:.1f} dB (MSE {held['mse']:.5f}), codebook perplexity "
+        f"{held['perplexity']:.0f}, {held['unused_codes']} unused codes; saved to {out}"
+    )
+
+
+def _encode(args: argparse.Namespace) -> None:
+    import json
+
+    from lerobot_murm.collection.dataset import episode_successes
+    from lerobot_murm.vqvae.latent_cache import build_latent_cache
+    from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances
+
+    repo_id, root = _dataset_location(args.dataset)
+    cache_dir = Path(args.cache_dir)
+    successes = episode_successes(repo_id, root)
+    stats = []
+    for encoder in args.encoders:
+        cache = build_latent_cache(repo_id, root, Path(encoder), cache_dir, device=args.device)
+        stats.append(distance_statistics(cache, successes))
+        print(f"{cache.camera}: {len(cache.indices)} frames cached; suggested epsilon {stats[-1]['suggested_epsilon']:.2f}")
+    public = [{k: v for k, v in s.items() if not k.startswith("_")} for s in stats]
+    (cache_dir / "epsilon.json").write_text(json.dumps(public, indent=2) + "\n")
+    plot_distances(stats, cache_dir / "latent_distances.png")
+    print(f"wrote {cache_dir / 'epsilon.json'} and {cache_dir / 'latent_distances.png'}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="murm", description="MURM: multi-view goal-conditioned offline RL")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -99,6 +143,23 @@ def build_parser() -> argparse.ArgumentParser:
     pull.add_argument("--repo-id", required=True)
     pull.add_argument("--root", required=True, help="folder to download into")
     pull.set_defaults(func=_pull)
+
+    vq = commands.add_parser("train-vqvae", help="train one camera's VQ-VAE on a collected dataset")
+    vq.add_argument("--dataset", required=True, help="a dataset folder or a Hub repo id")
+    vq.add_argument("--camera", required=True)
+    vq.add_argument("--steps", type=int, default=6000)
+    vq.add_argument("--batch-size", type=int, default=128)
+    vq.add_argument("--seed", type=int, default=0)
+    vq.add_argument("--out", default=None, help="checkpoint folder (default: outputs/vqvae/DATASET/CAMERA)")
+    vq.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
+    vq.set_defaults(func=_train_vqvae)
+
+    enc = commands.add_parser("encode", help="build the latent cache and the epsilon statistics")
+    enc.add_argument("--dataset", required=True, help="a dataset folder or a Hub repo id")
+    enc.add_argument("--encoders", nargs="+", required=True, help="VQ-VAE checkpoint folders, one per camera")
+    enc.add_argument("--cache-dir", default="outputs/latent_cache")
+    enc.add_argument("--device", default="cpu")
+    enc.set_defaults(func=_encode)
     return parser
 
 

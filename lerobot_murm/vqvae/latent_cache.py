@@ -1,0 +1,96 @@
+"""The latent cache the RL trainer reads: every frame and goal image of a camera, encoded once.
+
+It stores codebook indices (12x12 uint16 per image) and the codebook, so that
+`latents()` returns exactly the vectors the frozen encoder produces (a table lookup,
+bit-identical) in a tenth of the space. A cache file is named by the dataset's and
+the encoder's fingerprints: a changed dataset or encoder never gets a stale cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from lerobot_murm.vqvae.frames import dataset_fingerprint, load_camera_frames, open_dataset
+from lerobot_murm.vqvae.modeling_vqvae import WEIGHTS_FILE, VQVAE
+
+ENCODE_BATCH = 1024
+
+
+@dataclass
+class LatentCache:
+    camera: str
+    indices: np.ndarray  # (N, g, g) uint16, one per dataset frame, in dataset order
+    goal_indices: np.ndarray  # (E, g, g) uint16, one per episode
+    codebook: np.ndarray  # (K, D) float32
+    episode_index: np.ndarray  # (N,)
+    frame_index: np.ndarray  # (N,)
+
+    def latents(self, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """(n, D*g*g) float32 latents of the frames `rows`, laid out as the encoder's output."""
+        return _lookup(self.codebook, self.indices[rows])
+
+    def goal_latents(self, episodes: np.ndarray | slice = slice(None)) -> np.ndarray:
+        return _lookup(self.codebook, self.goal_indices[episodes])
+
+
+def _lookup(codebook: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    vectors = codebook[indices.astype(np.int64)]  # (n, g, g, D)
+    return np.ascontiguousarray(vectors.transpose(0, 3, 1, 2)).reshape(len(indices), -1)
+
+
+def encoder_fingerprint(encoder_dir: Path) -> str:
+    return hashlib.sha256((Path(encoder_dir) / WEIGHTS_FILE).read_bytes()).hexdigest()
+
+
+def cache_path(cache_dir: Path, camera: str, dataset_fp: str, encoder_fp: str) -> Path:
+    return Path(cache_dir) / f"{camera}-data{dataset_fp[:16]}-enc{encoder_fp[:16]}.npz"
+
+
+@torch.no_grad()
+def encode_images(model: VQVAE, images: np.ndarray, device: torch.device, desc: str | None = None) -> np.ndarray:
+    """uint8 (N, H, W, 3) -> uint16 (N, g, g) codebook indices, in batches."""
+    out = np.empty((len(images), model.config.grid_size, model.config.grid_size), np.uint16)
+    starts = range(0, len(images), ENCODE_BATCH)
+    for start in tqdm(starts, desc=desc, unit="batch", disable=desc is None):
+        batch = torch.from_numpy(images[start : start + ENCODE_BATCH]).to(device)
+        out[start : start + len(batch)] = model.encode_indices(batch).cpu().numpy().astype(np.uint16)
+    return out
+
+
+def build_latent_cache(
+    repo_id: str, root: Path | None, encoder_dir: Path, cache_dir: Path, device: str = "cpu"
+) -> LatentCache:
+    """Load the cache for (dataset, encoder), building it first if it does not exist yet."""
+    model = VQVAE.load(encoder_dir, device=device)
+    camera = model.config.camera
+    dataset = open_dataset(repo_id, root)
+    path = cache_path(cache_dir, camera, dataset_fingerprint(dataset), encoder_fingerprint(encoder_dir))
+    if path.exists():
+        with np.load(path) as data:
+            return LatentCache(camera, **{k: data[k] for k in data.files})
+    frames = load_camera_frames(dataset, camera)
+    if frames.images.shape[1] != model.config.image_size:
+        raise ValueError(
+            f"the {camera} VQ-VAE in {encoder_dir} was trained on {model.config.image_size}x"
+            f"{model.config.image_size} images; the dataset has {frames.images.shape[1]}x{frames.images.shape[2]}"
+        )
+    cache = LatentCache(
+        camera=camera,
+        indices=encode_images(model, frames.images, torch.device(device), desc=f"encode {camera}"),
+        goal_indices=encode_images(model, frames.goals, torch.device(device)),
+        codebook=model.quantizer.codebook.detach().cpu().numpy().astype(np.float32),
+        episode_index=frames.episode_index,
+        frame_index=frames.frame_index,
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez(tmp, **{k: getattr(cache, k) for k in ("indices", "goal_indices", "codebook", "episode_index", "frame_index")})
+    tmp.replace(path)  # atomic: an interrupted build leaves no half cache
+    return cache

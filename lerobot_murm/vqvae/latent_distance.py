@@ -1,0 +1,73 @@
+"""Where to put the reward threshold epsilon (paper eq. 4-5, Table 2), per camera.
+
+The reward says a camera's view reached its goal when the squared latent distance
+||z - z_g||^2 is below epsilon. Good thresholds separate the final frames of
+successful episodes (goal reached) from random frames (mostly not reached): we
+report both distributions and suggest the threshold that maximises Youden's J =
+P(final-success frame below) - P(random frame below).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from lerobot_murm.vqvae.latent_cache import LatentCache  # noqa: E402
+
+PERCENTILES = (5, 25, 50, 75, 95)
+
+
+def goal_distances(cache: LatentCache, rows: np.ndarray) -> np.ndarray:
+    """Squared latent distance between frames `rows` and their episode's goal image."""
+    diff = cache.latents(rows) - cache.goal_latents(cache.episode_index[rows])
+    return np.square(diff).sum(axis=1)
+
+
+def distance_statistics(cache: LatentCache, episode_success: np.ndarray, samples: int = 5000, seed: int = 0) -> dict:
+    last_rows = np.flatnonzero(np.append(cache.episode_index[1:] != cache.episode_index[:-1], True))
+    successful_last = last_rows[episode_success[cache.episode_index[last_rows]]]
+    random_rows = np.random.default_rng(seed).choice(len(cache.indices), size=min(samples, len(cache.indices)), replace=False)
+    reached = goal_distances(cache, successful_last)
+    random = goal_distances(cache, random_rows)
+    candidates = np.unique(np.concatenate([reached, random]))
+    below_reached = np.searchsorted(np.sort(reached), candidates, side="right") / max(len(reached), 1)
+    below_random = np.searchsorted(np.sort(random), candidates, side="right") / len(random)
+    best = int(np.argmax(below_reached - below_random))
+    return {
+        "camera": cache.camera,
+        "distance": "squared L2 between 720-number latents",
+        "successful_final_frames": _summary(reached),
+        "random_frames": _summary(random),
+        "suggested_epsilon": float(candidates[best]),
+        "youden_j": float(below_reached[best] - below_random[best]),
+        "_reached": reached,
+        "_random": random,
+    }
+
+
+def _summary(values: np.ndarray) -> dict:
+    if not len(values):
+        return {"count": 0}
+    return {"count": int(len(values)), "mean": float(values.mean())} | {
+        f"p{p}": float(np.percentile(values, p)) for p in PERCENTILES
+    }
+
+
+def plot_distances(stats: list[dict], path: Path) -> None:
+    fig, axes = plt.subplots(1, len(stats), figsize=(3.6 * len(stats), 3.0), squeeze=False)
+    for ax, s in zip(axes[0], stats, strict=True):
+        bins = np.linspace(0, np.percentile(np.concatenate([s["_reached"], s["_random"]]), 99), 40)
+        ax.hist(s["_random"], bins=bins, alpha=0.6, density=True, label="random frames")
+        ax.hist(s["_reached"], bins=bins, alpha=0.6, density=True, label="final frames, success")
+        ax.axvline(s["suggested_epsilon"], color="k", linestyle="--", label=f"epsilon {s['suggested_epsilon']:.2f}")
+        ax.set_title(f"{s['camera']} (J = {s['youden_j']:.2f})", fontsize=9)
+        ax.set_xlabel("||z - z_goal||^2", fontsize=8)
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

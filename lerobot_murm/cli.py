@@ -147,7 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     vq = commands.add_parser("train-vqvae", help="train one camera's VQ-VAE on a collected dataset")
     vq.add_argument("--dataset", required=True, help="a dataset folder or a Hub repo id")
     vq.add_argument("--camera", required=True)
-    vq.add_argument("--steps", type=int, default=6000)
+    vq.add_argument("--steps", type=int, default=2500)
     vq.add_argument("--batch-size", type=int, default=128)
     vq.add_argument("--seed", type=int, default=0)
     vq.add_argument("--out", default=None, help="checkpoint folder (default: outputs/vqvae/DATASET/CAMERA)")

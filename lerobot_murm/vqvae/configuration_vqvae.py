@@ -22,7 +22,7 @@ class VQVAEConfig:
     ema_decay: float = 0.99  # EMA codebook updates (van den Oord et al. 2017, appendix)
     dead_code_threshold: float = 1.0  # codes used less than this (EMA count) are restarted
     # training
-    steps: int = 6000
+    steps: int = 2500
     batch_size: int = 128
     learning_rate: float = 1e-3
     holdout_fraction: float = 0.05  # whole episodes kept out for validation

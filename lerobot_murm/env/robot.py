@@ -80,9 +80,6 @@ class Panda:
     def finger_width(self) -> float:
         return float(sum(self._client.getJointState(self.body, j)[0] for j in FINGER_JOINTS))
 
-    def joint_positions(self) -> np.ndarray:
-        return np.asarray([s[0] for s in self._client.getJointStates(self.body, ARM_JOINTS + FINGER_JOINTS)])
-
     # --- control ---------------------------------------------------------------------
     def inverse_kinematics(self, position: np.ndarray) -> list[float]:
         solution = self._client.calculateInverseKinematics(

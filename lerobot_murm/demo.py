@@ -1,8 +1,9 @@
-"""`murm demo`: look at the simulator before anything is trained.
+"""`murm demo`: look at the simulator and the demonstrations before anything is trained.
 
 Writes `cameras.png` (for each task: the five camera images at reset over the five
 goal images) and `rollout_<task>.png` (frames of one seeded scripted-expert episode),
-and prints each episode's outcome.
+prints each episode's outcome, and collects a small demonstration dataset
+(`demonstrations/`, rebuilt on every run) with `murm collect`'s own code.
 """
 
 from __future__ import annotations
@@ -16,10 +17,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from lerobot_murm.collection import CollectConfig, collect  # noqa: E402
 from lerobot_murm.env import CAMERA_NAMES, EPISODE_STEPS, TASK_NAMES, MurmEnv, goal_key  # noqa: E402
 from lerobot_murm.expert import ScriptedExpert  # noqa: E402
 
 ROLLOUT_FRAMES = 8
+DEMO_EPISODES = 10
 
 
 def save_camera_grid(path: Path, seed: int, image_size: int = 48) -> None:
@@ -91,4 +94,7 @@ def run_demo(out_dir: Path, seed: int = 0) -> list[dict]:
             f"first success at step {result['first_success_step']}  "
             f"({result['steps_per_s']:.0f} env steps/s, 5 cameras + goals)"
         )
+    dataset = out_dir / "demonstrations"
+    summary = collect(CollectConfig(task="place_in_box", root=dataset, episodes=DEMO_EPISODES, workers=2, overwrite=True))
+    print(f"collected {summary['episodes']} place_in_box episodes into {dataset} (expert success {summary['success_rate']:.0%})")
     return results

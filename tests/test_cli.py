@@ -4,12 +4,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from PIL import Image
 
 MURM = Path(sys.executable).parent / "murm"
 
 
-def test_murm_demo_writes_the_camera_grid_and_one_expert_episode_per_task(tmp_path):
+def test_murm_demo_writes_the_camera_grid_one_expert_episode_per_task_and_a_small_dataset(tmp_path):
     result = subprocess.run(
         [str(MURM), "demo", "--out", str(tmp_path), "--seed", "0"], capture_output=True, text=True, timeout=300
     )
@@ -17,6 +18,9 @@ def test_murm_demo_writes_the_camera_grid_and_one_expert_episode_per_task(tmp_pa
     lines = [line for line in result.stdout.splitlines() if "seed 0" in line]
     assert [line.split()[0] for line in lines] == ["place_in_box", "place_in_random_box", "pick_up"]
     assert all("success=True" in line for line in lines), result.stdout
+    assert "collected 10 place_in_box episodes" in result.stdout
+    dataset = LeRobotDataset("local/demo", root=tmp_path / "demonstrations", video_backend="pyav")
+    assert dataset.meta.total_episodes == 10
     for name in ("cameras.png", "rollout_place_in_box.png", "rollout_place_in_random_box.png", "rollout_pick_up.png"):
         with Image.open(tmp_path / name) as image:
             assert min(image.size) > 200

@@ -68,8 +68,7 @@ def create_dataset(repo_id: str, root: Path, recipe: EpisodeRecipe) -> LeRobotDa
         features=dataset_features(recipe.cameras, recipe.image_size),
         root=root,
         robot_type="franka_panda",
-        use_videos=False,
-        image_writer_threads=2,
+        use_videos=False,  # no image writer either: workers stage the PNGs (stage_episode)
     )
 
 
@@ -77,8 +76,6 @@ def create_dataset(repo_id: str, root: Path, recipe: EpisodeRecipe) -> LeRobotDa
 class StagedEpisode:
     """An episode whose images are PNG files on disk: what a worker sends to the writer."""
 
-    index: int
-    noisy: bool
     images: dict[str, list[str]]  # feature key -> one PNG path per frame
     state: np.ndarray
     environment_state: np.ndarray
@@ -108,8 +105,6 @@ def stage_episode(episode: Episode, dataset_root: Path) -> StagedEpisode:
         write_image(episode.goal_images[camera], goal_path, compress_level=PNG_COMPRESS_LEVEL)
         images[goal_image_key(camera)] = [str(goal_path)] * len(frames)
     return StagedEpisode(
-        episode.index,
-        episode.noisy,
         images,
         episode.state,
         episode.environment_state,

@@ -44,7 +44,7 @@ def main() -> None:
     def encode_rate() -> float:
         model.eval()
         start = time.perf_counter()
-        encode_images(model, images, device)
+        encode_images(model, [images], len(images), device)
         model.train()
         return len(images) / (time.perf_counter() - start)
 

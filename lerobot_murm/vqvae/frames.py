@@ -1,20 +1,22 @@
 """A camera's frames and goal images, decoded once from a LeRobotDataset into uint8 arrays.
 
 Memory: 48 x 48 x 3 bytes = 6.9 KB a frame, so 100,000 frames take 0.69 GB per camera
-(goal images add one frame per episode). PNG decoding runs once, in threads.
+(goal images add one frame per episode). PNGs are decoded by OpenCV in a background
+thread, a few chunks ahead of whoever consumes them.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
+from collections import deque
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from PIL import Image
 
 from lerobot_murm.collection.dataset import goal_image_key, image_key
 
@@ -49,24 +51,64 @@ def dataset_fingerprint(dataset: LeRobotDataset) -> str:
     return digest.hexdigest()
 
 
-def load_camera_frames(dataset: LeRobotDataset, camera: str) -> CameraFrames:
+DECODE_CHUNK = 2048
+DECODE_AHEAD = 3  # chunks decoded ahead of the consumer
+
+
+@dataclass
+class CameraPNGs:
+    """A camera's encoded frames and goal images, straight from the dataset's parquet files."""
+
+    camera: str
+    frames: list[bytes]
+    goals: list[bytes]  # one per episode, in episode order
+    episode_index: np.ndarray
+    frame_index: np.ndarray
+
+    def decoded_frames(self) -> Iterator[np.ndarray]:
+        return decode_in_chunks(self.frames)
+
+
+def read_camera_pngs(dataset: LeRobotDataset, camera: str) -> CameraPNGs:
     available = dataset_cameras(dataset)
     if camera not in available:
         raise ValueError(f"the dataset at {dataset.root} has no camera {camera!r}; its cameras: {available}")
     table = dataset.hf_dataset.with_format("arrow")
     columns = table.select_columns([image_key(camera), goal_image_key(camera), "episode_index", "frame_index"])[:]
-    episode_index = columns["episode_index"].to_numpy()
     frame_index = columns["frame_index"].to_numpy()
-    frame_bytes = [item["bytes"] for item in columns[image_key(camera)].to_pylist()]
-    first_frames = np.flatnonzero(frame_index == 0)
     goal_column = columns[goal_image_key(camera)]
-    goal_bytes = [goal_column[int(i)].as_py()["bytes"] for i in first_frames]
-    with ThreadPoolExecutor(4) as pool:
-        images = np.stack(list(pool.map(_decode_png, frame_bytes, chunksize=512)))
-        goals = np.stack(list(pool.map(_decode_png, goal_bytes, chunksize=64)))
-    return CameraFrames(camera, images, goals, episode_index, frame_index)
+    return CameraPNGs(
+        camera=camera,
+        frames=[item["bytes"] for item in columns[image_key(camera)].to_pylist()],
+        goals=[goal_column[int(i)].as_py()["bytes"] for i in np.flatnonzero(frame_index == 0)],
+        episode_index=columns["episode_index"].to_numpy(),
+        frame_index=frame_index,
+    )
 
 
-def _decode_png(data: bytes) -> np.ndarray:
-    with Image.open(io.BytesIO(data)) as image:
-        return np.asarray(image.convert("RGB"))
+def decode_in_chunks(pngs: list[bytes], chunk: int = DECODE_CHUNK) -> Iterator[np.ndarray]:
+    """(n, H, W, 3) uint8 chunks, decoded by a background thread a few chunks ahead.
+
+    Decoding holds one core and releases the GIL, so a consumer that encodes with torch
+    overlaps with it (about 20 % faster than decode-then-encode on 2 cores).
+    """
+    starts = range(0, len(pngs), chunk)
+    with ThreadPoolExecutor(1) as pool:
+        pending = deque(pool.submit(decode_pngs, pngs[s : s + chunk]) for s in starts[:DECODE_AHEAD])
+        for s in starts[DECODE_AHEAD:]:
+            yield pending.popleft().result()
+            pending.append(pool.submit(decode_pngs, pngs[s : s + chunk]))
+        while pending:
+            yield pending.popleft().result()
+
+
+def decode_pngs(pngs: list[bytes]) -> np.ndarray:
+    """OpenCV decodes these tiny PNGs twice as fast as Pillow (same pixels)."""
+    decoded = [cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) for data in pngs]
+    return np.stack(decoded)[..., ::-1].copy()  # BGR -> RGB
+
+
+def load_camera_frames(dataset: LeRobotDataset, camera: str) -> CameraFrames:
+    pngs = read_camera_pngs(dataset, camera)
+    images = np.concatenate(list(pngs.decoded_frames()))
+    return CameraFrames(camera, images, decode_pngs(pngs.goals), pngs.episode_index, pngs.frame_index)

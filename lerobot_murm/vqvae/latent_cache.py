@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from lerobot_murm.vqvae.frames import dataset_fingerprint, load_camera_frames, open_dataset
+from lerobot_murm.vqvae.frames import dataset_fingerprint, decode_pngs, open_dataset, read_camera_pngs
 from lerobot_murm.vqvae.modeling_vqvae import WEIGHTS_FILE, VQVAE
 
 ENCODE_BATCH = 1024
@@ -53,14 +54,21 @@ def cache_path(cache_dir: Path, camera: str, dataset_fp: str, encoder_fp: str) -
     return Path(cache_dir) / f"{camera}-data{dataset_fp[:16]}-enc{encoder_fp[:16]}.npz"
 
 
-@torch.no_grad()
-def encode_images(model: VQVAE, images: np.ndarray, device: torch.device, desc: str | None = None) -> np.ndarray:
-    """uint8 (N, H, W, 3) -> uint16 (N, g, g) codebook indices, in batches."""
-    out = np.empty((len(images), model.config.grid_size, model.config.grid_size), np.uint16)
-    starts = range(0, len(images), ENCODE_BATCH)
-    for start in tqdm(starts, desc=desc, unit="batch", disable=desc is None):
-        batch = torch.from_numpy(images[start : start + ENCODE_BATCH]).to(device)
-        out[start : start + len(batch)] = model.encode_indices(batch).cpu().numpy().astype(np.uint16)
+@torch.inference_mode()
+def encode_images(
+    model: VQVAE, chunks: Iterable[np.ndarray], total: int, device: torch.device, desc: str | None = None
+) -> np.ndarray:
+    """Chunks of uint8 (n, H, W, 3) images, `total` in all -> uint16 (total, g, g) codebook indices."""
+    out = np.empty((total, model.config.grid_size, model.config.grid_size), np.uint16)
+    start = 0
+    with tqdm(total=total, desc=desc, unit="img", disable=desc is None) as progress:
+        for chunk in chunks:
+            for batch in torch.from_numpy(chunk).split(ENCODE_BATCH):
+                out[start : start + len(batch)] = model.encode_indices(batch.to(device)).cpu().numpy()
+                start += len(batch)
+            progress.update(len(chunk))
+    if start != total:
+        raise ValueError(f"expected {total} images, got {start}")
     return out
 
 
@@ -75,19 +83,21 @@ def build_latent_cache(
     if path.exists():
         with np.load(path) as data:
             return LatentCache(camera, **{k: data[k] for k in data.files})
-    frames = load_camera_frames(dataset, camera)
-    if frames.images.shape[1] != model.config.image_size:
+    pngs = read_camera_pngs(dataset, camera)
+    goals = decode_pngs(pngs.goals)
+    if goals.shape[1] != model.config.image_size:
         raise ValueError(
             f"the {camera} VQ-VAE in {encoder_dir} was trained on {model.config.image_size}x"
-            f"{model.config.image_size} images; the dataset has {frames.images.shape[1]}x{frames.images.shape[2]}"
+            f"{model.config.image_size} images; the dataset has {goals.shape[1]}x{goals.shape[2]}"
         )
+    device = torch.device(device)
     cache = LatentCache(
         camera=camera,
-        indices=encode_images(model, frames.images, torch.device(device), desc=f"encode {camera}"),
-        goal_indices=encode_images(model, frames.goals, torch.device(device)),
+        indices=encode_images(model, pngs.decoded_frames(), len(pngs.frames), device, desc=f"encode {camera}"),
+        goal_indices=encode_images(model, [goals], len(goals), device),
         codebook=model.quantizer.codebook.detach().cpu().numpy().astype(np.float32),
-        episode_index=frames.episode_index,
-        frame_index=frames.frame_index,
+        episode_index=pngs.episode_index,
+        frame_index=pngs.frame_index,
     )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")

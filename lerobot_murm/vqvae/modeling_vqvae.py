@@ -19,14 +19,14 @@ from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
-QUANTIZE_CHUNK_ROWS = 8192
+QUANTIZE_CHUNK_ROWS = 2048
 
 
 class ResidualBlock(nn.Module):
     def __init__(self, channels: int, hidden: int):
         super().__init__()
         self.block = nn.Sequential(
-            nn.ReLU(), nn.Conv2d(channels, hidden, 3, padding=1), nn.ReLU(), nn.Conv2d(hidden, channels, 1)
+            nn.ReLU(), nn.Conv2d(channels, hidden, 3, padding=1), nn.ReLU(inplace=True), nn.Conv2d(hidden, channels, 1)
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -49,11 +49,13 @@ class VectorQuantizerEMA(nn.Module):
 
         argmin ||x - c||^2 = argmax (x.c - ||c||^2 / 2): one fused addmm per chunk of
         rows, small enough to stay in cache (twice as fast as the plain distance matrix).
+        `max(1).indices` rather than `argmax(1)`: the same first-maximum index, and twice
+        as fast on CPU.
         """
         flat = z.permute(0, 2, 3, 1).reshape(-1, z.shape[1])
         bias = -0.5 * self.codebook.pow(2).sum(1)
         codebook_t = self.codebook.T.contiguous()
-        nearest = [torch.addmm(bias, rows, codebook_t).argmax(1) for rows in flat.split(QUANTIZE_CHUNK_ROWS)]
+        nearest = [torch.addmm(bias, rows, codebook_t).max(1).indices for rows in flat.split(QUANTIZE_CHUNK_ROWS)]
         return torch.cat(nearest).view(z.shape[0], z.shape[2], z.shape[3])
 
     def lookup(self, indices: torch.Tensor) -> torch.Tensor:
@@ -93,10 +95,10 @@ class VQVAE(nn.Module):
         c, h, r = 3, config.hidden_channels, config.residual_channels
         self.encoder = nn.Sequential(
             nn.Conv2d(c, h // 2, 4, stride=2, padding=1),
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.Conv2d(h // 2, h, 4, stride=2, padding=1),
             *[ResidualBlock(h, r) for _ in range(config.num_residual_blocks)],
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.Conv2d(h, config.embedding_dim, 1),
         )
         self.quantizer = VectorQuantizerEMA(
@@ -105,9 +107,9 @@ class VQVAE(nn.Module):
         self.decoder = nn.Sequential(
             nn.Conv2d(config.embedding_dim, h, 3, padding=1),
             *[ResidualBlock(h, r) for _ in range(config.num_residual_blocks + 1)],
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.ConvTranspose2d(h, h // 2, 4, stride=2, padding=1),
-            nn.ReLU(),
+            nn.ReLU(inplace=True),
             nn.ConvTranspose2d(h // 2, c, 4, stride=2, padding=1),
         )
 
@@ -125,8 +127,9 @@ class VQVAE(nn.Module):
         self._check(images)
         if images.shape[-1] == 3:
             images = images.permute(0, 3, 1, 2)
-        images = images.float() / 255.0 if images.dtype == torch.uint8 else images.float()
-        return images - 0.5
+        if images.dtype == torch.uint8:  # one new tensor, then in place: the encoder's hot path
+            return images.float().div_(255.0).sub_(0.5)
+        return images.float() - 0.5
 
     @staticmethod
     def postprocess(x: torch.Tensor) -> torch.Tensor:

@@ -62,19 +62,14 @@ def _pull(args: argparse.Namespace) -> None:
     print(f"pulled {args.repo_id} into {args.root}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames")
 
 
-def _dataset_location(value: str) -> tuple[str, Path | None]:
-    """`--dataset` takes a local dataset folder or a Hub repo id."""
-    path = Path(value)
-    return (f"local/{path.name}", path) if path.exists() else (value, None)
-
-
 def _train_vqvae(args: argparse.Namespace) -> None:
     from dataclasses import replace
 
     from lerobot_murm.vqvae import VQVAEConfig
+    from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.train import train_vqvae
 
-    repo_id, root = _dataset_location(args.dataset)
+    repo_id, root = dataset_location(args.dataset)
     out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{args.camera}")
     config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
     metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
@@ -89,21 +84,39 @@ def _encode(args: argparse.Namespace) -> None:
     import json
 
     from lerobot_murm.collection.dataset import episode_successes
+    from lerobot_murm.policy.configuration_murm import LATENT_DISTANCE_FILE
+    from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
     from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances
 
-    repo_id, root = _dataset_location(args.dataset)
+    repo_id, root = dataset_location(args.dataset)
     cache_dir = Path(args.cache_dir)
     successes = episode_successes(repo_id, root)
     stats = []
     for encoder in args.encoders:
         cache = build_latent_cache(repo_id, root, Path(encoder), cache_dir, device=args.device)
         stats.append(distance_statistics(cache, successes))
+        public = {k: v for k, v in stats[-1].items() if not k.startswith("_")}
+        (Path(encoder) / LATENT_DISTANCE_FILE).write_text(json.dumps(public, indent=2) + "\n")  # the policy's default epsilon
         print(f"{cache.camera}: {len(cache.indices)} frames cached; suggested epsilon {stats[-1]['suggested_epsilon']:.2f}")
     public = [{k: v for k, v in s.items() if not k.startswith("_")} for s in stats]
     (cache_dir / "epsilon.json").write_text(json.dumps(public, indent=2) + "\n")
     plot_distances(stats, cache_dir / "latent_distances.png")
     print(f"wrote {cache_dir / 'epsilon.json'} and {cache_dir / 'latent_distances.png'}")
+
+
+def _train(args: argparse.Namespace) -> None:
+    from lerobot_murm.policy.train import TrainingInterrupted, load_train_config, train
+
+    config = load_train_config(args.config, args.overrides)
+    try:
+        summary = train(config)
+    except TrainingInterrupted as stop:
+        raise SystemExit(f"murm train: {stop}") from None
+    for row in summary["final"]:
+        print(f"{summary['task']} {summary['method']} {'+'.join(summary['cameras'])} masking {row['mask_p']:.0%}: "
+              f"success {100 * row['success_rate']:.1f} % over {row['episodes']} episodes")
+    print(f"checkpoint: {summary['checkpoint']}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -160,6 +173,11 @@ def build_parser() -> argparse.ArgumentParser:
     enc.add_argument("--cache-dir", default="outputs/latent_cache")
     enc.add_argument("--device", default="cpu")
     enc.set_defaults(func=_encode)
+
+    tr = commands.add_parser("train", help="train a MURM policy fast from the latent cache (resumes when rerun)")
+    tr.add_argument("--config", required=True, help="a YAML file, e.g. configs/place_in_box/separated_q.yaml")
+    tr.add_argument("overrides", nargs="*", help="draccus overrides, e.g. --steps=1000 --policy.method=dropout")
+    tr.set_defaults(func=_train)
     return parser
 
 

@@ -6,9 +6,8 @@ import pytest
 import torch
 
 from lerobot_murm.policy.iql import (
+    DoubleQ,
     GaussianPolicy,
-    SeparatedTwinQ,
-    TwinQ,
     advantage_weights,
     camera_keep_mask,
     expectile_loss,
@@ -71,19 +70,44 @@ def test_camera_dropout_drops_each_camera_at_rate_p_and_never_all():
     assert camera_keep_mask(10, 1, p=0.9).all()  # one camera is never dropped
 
 
+def _head(q: DoubleQ, which: int, group: int, x: torch.Tensor) -> torch.Tensor:
+    """Q head `group` of set `which`, computed by hand from the ensemble's weights."""
+    h = x @ q.first.weight[group, :, which * q.hidden : (which + 1) * q.hidden] + q.first.bias[group, 0, which * q.hidden : (which + 1) * q.hidden]
+    head = which * q.groups + group
+    for layer in q.body:
+        h = torch.relu(h) @ layer.weight[head] + layer.bias[head, 0]
+    return (torch.relu(h) @ q.out.weight[head] + q.out.bias[head, 0]).squeeze(-1)
+
+
 def test_separated_q_averages_one_head_per_camera():
-    q = SeparatedTwinQ(cameras=2, pair_dim=3, action_dim=4, hidden=8, layers=2)
+    torch.manual_seed(0)
+    q = DoubleQ(groups=2, group_dim=3, action_dim=4, hidden=8, layers=2)
     state, action = torch.randn(5, 2, 3), torch.randn(5, 4)
     q1, q2 = q(state, action)
-    heads = [q.q1[k](torch.cat([state[:, k], action], -1)).squeeze(-1) for k in range(2)]
-    torch.testing.assert_close(q1, (heads[0] + heads[1]) / 2)
+    for which, values in ((0, q1), (1, q2)):
+        heads = [_head(q, which, k, torch.cat([state[:, k], action], -1)) for k in range(2)]
+        torch.testing.assert_close(values, (heads[0] + heads[1]) / 2)
     assert q2.shape == (5,) and not torch.allclose(q1, q2)
+    # camera 1's input does not reach camera 0's heads
+    other = state.clone()
+    other[:, 1] += 1.0
+    torch.testing.assert_close(_head(q, 0, 0, torch.cat([other[:, 0], action], -1)), _head(q, 0, 0, torch.cat([state[:, 0], action], -1)))
+
+
+def test_double_q_on_the_whole_state_has_two_independent_heads():
+    torch.manual_seed(0)
+    q = DoubleQ(groups=1, group_dim=6, action_dim=4, hidden=8, layers=2)
+    state, action = torch.randn(5, 1, 6), torch.randn(5, 4)
+    q1, q2 = q(state, action)
+    x = torch.cat([state[:, 0], action], -1)
+    torch.testing.assert_close(q1, _head(q, 0, 0, x))
+    torch.testing.assert_close(q2, _head(q, 1, 0, x))
 
 
 def test_networks_have_the_paper_widths_and_depths():
-    q = TwinQ(state_dim=1440, action_dim=4, hidden=128, layers=2)
-    linear = [m for m in q.q1 if isinstance(m, torch.nn.Linear)]
-    assert [m.out_features for m in linear] == [128, 128, 1]
+    q = DoubleQ(groups=1, group_dim=1440, action_dim=4, hidden=128, layers=2)
+    shapes = [tuple(q.first.weight.shape)] + [tuple(m.weight.shape) for m in (*q.body, q.out)]
+    assert shapes == [(1, 1444, 2 * 128), (2, 128, 128), (2, 128, 1)]  # two heads of 1444 -> 128 -> 128 -> 1
     policy = GaussianPolicy(1440, 4, hidden=128, layers=4, log_std_min=-2.0, log_std_max=-1.0)
     assert [m.out_features for m in policy.mean if isinstance(m, torch.nn.Linear)] == [128] * 4 + [4]
     actions = policy.act(torch.randn(7, 1440), deterministic=False)

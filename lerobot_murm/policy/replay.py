@@ -1,7 +1,8 @@
 """Vectorised sampling of goal-conditioned transitions from latent caches, with future HER.
 
-All cameras' codebook indices and the actions live in memory (as torch tensors on
-the training device); a batch is gathered by index: row t, its successor t+1 in the
+All cameras' latents (decoded from the cache's codebook indices once: 2.9 KB a frame,
+0.29 GB per camera for 100,000 frames) and the actions live in memory as torch tensors
+on the training device; a batch is gathered by index: row t, its successor t+1 in the
 same episode, and a goal that is either the episode's own goal images or, with
 probability `her_ratio`, the latents of a later frame of the same episode (paper 4.3,
 future hindsight relabelling). The reward is recomputed for the goal actually used.
@@ -43,9 +44,8 @@ class LatentReplay:
         self.device = torch.device(device)
         self.her_ratio = her_ratio
         self.cameras = [c.camera for c in caches]
-        self.indices = [torch.from_numpy(c.indices.astype(np.int64)).to(self.device) for c in caches]
-        self.goal_indices = [torch.from_numpy(c.goal_indices.astype(np.int64)).to(self.device) for c in caches]
-        self.codebooks = [torch.from_numpy(c.codebook).to(self.device) for c in caches]
+        self.latents = [torch.from_numpy(c.latents()).to(self.device) for c in caches]  # (N, D) per camera
+        self.goal_latents = [torch.from_numpy(c.goal_latents()).to(self.device) for c in caches]  # (E, D)
         self.actions = torch.from_numpy(np.asarray(actions, np.float32)).to(self.device)
         self.epsilons = torch.tensor(epsilons, dtype=torch.float32, device=self.device)
         self.episode = torch.from_numpy(episode_index.astype(np.int64)).to(self.device)
@@ -58,12 +58,6 @@ class LatentReplay:
         ends = np.searchsorted(episode_index, episode_index, side="right")
         return torch.from_numpy(ends.astype(np.int64)).to(self.device)
 
-    def _latents(self, camera: int, rows: torch.Tensor) -> torch.Tensor:
-        return self._lookup(camera, self.indices[camera][rows])
-
-    def _lookup(self, camera: int, indices: torch.Tensor) -> torch.Tensor:
-        return self.codebooks[camera][indices].permute(0, 3, 1, 2).flatten(1)
-
     def sample(self, batch_size: int, generator: torch.Generator | None = None) -> Batch:
         pick = torch.randint(len(self.transition_rows), (batch_size,), generator=generator, device=self.device)
         rows = self.transition_rows[pick]
@@ -71,13 +65,14 @@ class LatentReplay:
         relabel = torch.rand(batch_size, generator=generator, device=self.device) < self.her_ratio
         span = (self.episode_end[rows] - next_rows).float()  # frames t+1 .. last
         future = next_rows + (torch.rand(batch_size, generator=generator, device=self.device) * span).long()
-        z, z_next, z_goal = [], [], []
-        for k in range(len(self.cameras)):
-            own_goal = self._lookup(k, self.goal_indices[k][self.episode[rows]])
-            z.append(self._latents(k, rows))
-            z_next.append(self._latents(k, next_rows))
-            z_goal.append(torch.where(relabel.unsqueeze(1), self._latents(k, future), own_goal))
-        z, z_next, z_goal = (torch.stack(x, dim=1) for x in (z, z_next, z_goal))
+        episodes = self.episode[rows]
+        z = torch.stack([latents[rows] for latents in self.latents], dim=1)
+        z_next = torch.stack([latents[next_rows] for latents in self.latents], dim=1)
+        z_goal = torch.stack(
+            [torch.where(relabel.unsqueeze(1), latents[future], goals[episodes])
+             for latents, goals in zip(self.latents, self.goal_latents, strict=True)],
+            dim=1,
+        )
         return Batch(
             state=torch.cat([z, z_goal], dim=-1),
             action=self.actions[rows],

@@ -30,6 +30,12 @@ class CameraFrames:
     frame_index: np.ndarray  # (N,) int
 
 
+def dataset_location(value: str) -> tuple[str, Path | None]:
+    """`--dataset` values: a local dataset folder or a Hub repo id -> (repo_id, root)."""
+    path = Path(value)
+    return (f"local/{path.name}", path) if path.exists() else (value, None)
+
+
 def open_dataset(repo_id: str, root: Path | str | None) -> LeRobotDataset:
     return LeRobotDataset(repo_id, root=root, video_backend="pyav")
 

@@ -21,6 +21,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from lerobot_murm.device import resolve_device  # noqa: E402
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig  # noqa: E402
 from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset  # noqa: E402
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE  # noqa: E402
@@ -93,7 +94,7 @@ def train_vqvae(
     repo_id: str, root: Path | None, camera: str, out_dir: Path, config: VQVAEConfig | None = None, device: str = "auto"
 ) -> dict:
     """Train, evaluate and save; returns the metrics. Ctrl-C stops early and still saves."""
-    device = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else "cpu" if device == "auto" else device)
+    device = resolve_device(device)
     dataset = open_dataset(repo_id, root)
     frames = load_camera_frames(dataset, camera)
     config = replace(

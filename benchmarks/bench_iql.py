@@ -1,0 +1,168 @@
+"""IQL training speed: gradient steps/s per method, FLOP/s against a dense matmul, and
+the fast trainer against `lerobot-train`.
+
+Not a test. Run it on an otherwise idle machine:
+
+    .venv/bin/python benchmarks/bench_iql.py [--device cpu] [--repeats 5]
+    .venv/bin/python benchmarks/bench_iql.py --lerobot-train DATASET_DIR ENCODER_DIR
+
+Speed does not depend on the latents' content, so the replay holds random codebook
+indices (100,000 frames, 1,000 episodes). A step is what `murm train` does: sample a
+batch from the replay, `policy.forward`, backward, optimizer step, `policy.update()`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict
+
+import numpy as np
+import torch
+from lerobot.configs import FeatureType, PolicyFeature
+from torch.utils.flop_counter import FlopCounterMode
+
+from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
+from lerobot_murm.policy.modeling_murm import MurmPolicy
+from lerobot_murm.policy.replay import LatentReplay
+from lerobot_murm.policy.train import transition_batch
+from lerobot_murm.vqvae import VQVAEConfig
+from lerobot_murm.vqvae.latent_cache import LatentCache
+
+CASES = [("single", 1), ("concat", 2), ("dropout", 2), ("separated_q", 2), ("dropout", 3), ("separated_q", 3)]
+CAMERAS = ["global", "adjacent", "side"]
+
+
+def synthetic_cache(camera: str, frames: int = 100_000, episodes: int = 1_000, seed: int = 0) -> LatentCache:
+    config = VQVAEConfig()
+    rng = np.random.default_rng(seed)
+    g = config.grid_size
+    return LatentCache(
+        camera=camera,
+        indices=rng.integers(0, config.codebook_size, (frames, g, g)).astype(np.uint16),
+        goal_indices=rng.integers(0, config.codebook_size, (episodes, g, g)).astype(np.uint16),
+        codebook=rng.normal(size=(config.codebook_size, config.embedding_dim)).astype(np.float32),
+        episode_index=np.repeat(np.arange(episodes), frames // episodes),
+        frame_index=np.tile(np.arange(frames // episodes), episodes),
+    )
+
+
+def make_policy(method: str, cameras: list[str], device: torch.device) -> MurmPolicy:
+    encoders = {c: asdict(VQVAEConfig(camera=c)) for c in cameras}
+    image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 48, 48))
+    config = MurmConfig(method=method, cameras=cameras, encoders=encoders, epsilon=[2.0] * len(cameras))
+    config.input_features = {k: image for c in cameras for k in (image_feature_key(c), goal_feature_key(c))}
+    config.output_features = {"action": PolicyFeature(type=FeatureType.ACTION, shape=(4,))}
+    return MurmPolicy(config).to(device)
+
+
+def matmul_gflops(device: torch.device, n: int = 2048, repeats: int = 10) -> float:
+    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
+    a @ b
+    rates = []
+    for _ in range(repeats):
+        _sync(device)
+        start = time.perf_counter()
+        a @ b
+        _sync(device)
+        rates.append(2 * n**3 / (time.perf_counter() - start) / 1e9)
+    return statistics.median(rates)
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def measure(method: str, n_cameras: int, batch: int, device: torch.device, steps: int, repeats: int) -> dict:
+    cameras = CAMERAS[:n_cameras]
+    policy = make_policy(method, cameras, device).train()
+    caches = [synthetic_cache(c, seed=i) for i, c in enumerate(cameras)]
+    actions = np.random.default_rng(0).uniform(-1, 1, (len(caches[0].indices), 4)).astype(np.float32)
+    replay = LatentReplay(caches, actions, policy.config.epsilon, policy.config.her_ratio, device=device)
+    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    generator = torch.Generator(device=device).manual_seed(0)
+
+    def update(transitions: dict) -> None:
+        loss, _ = policy.forward(transitions)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        policy.update()
+
+    transitions = transition_batch(replay, batch, generator)
+    with FlopCounterMode(display=False) as counter:
+        update(transitions)
+    flops = counter.get_total_flops()
+    step_times, update_times = [], []
+    for _ in range(repeats):
+        _sync(device)
+        start = time.perf_counter()
+        for _ in range(steps):
+            update(transition_batch(replay, batch, generator))
+        _sync(device)
+        step_times.append((time.perf_counter() - start) / steps)
+        start = time.perf_counter()
+        for _ in range(steps):
+            update(transitions)
+        _sync(device)
+        update_times.append((time.perf_counter() - start) / steps)
+    step_s, update_s = statistics.median(step_times), statistics.median(update_times)
+    return {"method": method, "cameras": n_cameras, "steps_per_s": 1 / step_s, "update_ms": 1e3 * update_s,
+            "sample_ms": 1e3 * (step_s - update_s), "gflop": flops / 1e9, "gflops": flops / update_s / 1e9}
+
+
+def lerobot_train_steps_per_s(dataset: str, encoder_dir: str, batch: int, steps: int = 20) -> float:
+    """Real `lerobot-train` on a real dataset: steps/s from its own logged update + data times."""
+    with tempfile.TemporaryDirectory() as out:
+        command = [
+            "lerobot-train", "--policy.type=murm", "--policy.method=separated_q",
+            "--policy.cameras=[global,adjacent]", f"--policy.encoder_dir={encoder_dir}",
+            f"--dataset.repo_id=local/{dataset.rstrip('/').split('/')[-1]}", f"--dataset.root={dataset}",
+            f"--batch_size={batch}", f"--steps={steps}", "--log_freq=5", "--save_checkpoint=false",
+            "--eval_freq=0", "--num_workers=2", f"--output_dir={out}/run", "--wandb.enable=false",
+        ]
+        done = subprocess.run(command, capture_output=True, text=True, check=True)
+        log = done.stdout + done.stderr
+    times = [float(u) + float(d) for u, d in re.findall(r"updt_s:([\d.]+) data_s:([\d.]+)", log)]
+    return 1 / statistics.median(times[1:])  # the first window includes the dataloader's start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--lerobot-train", nargs=2, metavar=("DATASET_DIR", "ENCODER_DIR"))
+    args = parser.parse_args()
+    device = torch.device(args.device)
+    peak = matmul_gflops(device)
+    print(f"device {device}, torch threads {torch.get_num_threads()}, batch {args.batch_size}")
+    print(f"dense fp32 matmul (2048^3): {peak:.0f} GFLOP/s\n")
+    print("| method | cameras | steps/s | update ms | sample ms | GFLOP/update | GFLOP/s | % of matmul |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    results = {}
+    for method, n in CASES:
+        r = measure(method, n, args.batch_size, device, args.steps, args.repeats)
+        results[(method, n)] = r
+        print(f"| {method} | {n} | {r['steps_per_s']:.0f} | {r['update_ms']:.1f} | {r['sample_ms']:.1f} | "
+              f"{r['gflop']:.2f} | {r['gflops']:.0f} | {100 * r['gflops'] / peak:.0f} % |")
+    single = results[("single", 1)]["steps_per_s"]
+    print("\ntime per step relative to single-view (paper Table 5: dropout 1.05, separated Q 1.55):")
+    for method, n in CASES[1:]:
+        print(f"  {method} with {n} cameras: {single / results[(method, n)]['steps_per_s']:.2f}")
+    if args.lerobot_train:
+        slow = lerobot_train_steps_per_s(*args.lerobot_train, batch=args.batch_size)
+        fast = results[("separated_q", 2)]["steps_per_s"]
+        print(f"\nseparated_q, 2 cameras: murm train {fast:.1f} steps/s, lerobot-train {slow:.2f} steps/s "
+              f"-> {fast / slow:.0f}x")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

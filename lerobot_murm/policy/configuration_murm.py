@@ -1,0 +1,189 @@
+"""Configuration of the MURM policy (LeRobot policy type `murm`), paper 4.3 and 5.
+
+The frozen VQ-VAE encoders are part of the policy: `encoder_dir` names a folder with
+one checkpoint per camera (`<encoder_dir>/<camera>`, as `murm train-vqvae` writes it).
+Their architectures and the per-camera reward thresholds are copied into this config
+when it is created, so a saved policy describes itself and `lerobot-eval` needs
+nothing but the checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import torch
+from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
+from lerobot.optim import AdamConfig, OptimizerConfig
+
+from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
+
+METHODS = ("single", "concat", "dropout", "separated_q")
+LATENT_DISTANCE_FILE = "latent_distance.json"  # written by `murm encode` beside each encoder
+
+
+def image_feature_key(camera: str) -> str:
+    return f"observation.images.{camera}"
+
+
+def goal_feature_key(camera: str) -> str:
+    return f"observation.images.{camera}_goal"
+
+
+@OptimizerConfig.register_subclass("fused_adam")
+@dataclass
+class FusedAdamConfig(AdamConfig):
+    """Adam with torch's fused kernel: its element-wise updates took a fifth of an IQL
+    step on CPU as separate ops (benchmarks/bench_iql.py)."""
+
+    def build(self, params: list[dict]) -> torch.optim.Optimizer:
+        kwargs = asdict(self)
+        kwargs.pop("grad_clip_norm")
+        return torch.optim.Adam(params, fused=True, **kwargs)
+
+
+@PreTrainedConfig.register_subclass("murm")
+@dataclass
+class MurmConfig(PreTrainedConfig):
+    """Goal-conditioned IQL on VQ-VAE latents of one or several cameras.
+
+    method: `single` (one camera), `concat` (plain concatenation), `dropout` (whole
+    camera pairs zeroed with probability `dropout_p` in training, never all) or
+    `separated_q` (one Q per camera, averaged, eq. 11).
+
+    Where the paper is silent, the defaults are the authors' public code (rlkit/PTP
+    based): discount 0.995, expectile 0.9, inverse temperature 10 with weights clipped at
+    100, log-std in [-2, -1], policy weight decay 1e-4, values clipped to the range a
+    sparse reward can reach. Where paper and code disagree, the paper wins and the
+    code's value is a field: 128-unit layers (code: 256), 15 % future HER (code: more).
+    """
+
+    method: str = "separated_q"
+    cameras: list[str] = field(default_factory=lambda: ["global", "adjacent"])
+    encoder_dir: str | None = None
+    # filled from encoder_dir when empty; stored with the checkpoint
+    encoders: dict[str, dict] = field(default_factory=dict)
+    epsilon: list[float] | None = None  # eq. 5 per camera; None: the suggestion `murm encode` wrote
+
+    # IQL (paper 4.3 and Table 1)
+    discount: float = 0.995
+    expectile: float = 0.9
+    temperature: float = 10.0  # beta in eq. 8 (inverse temperature)
+    max_advantage_weight: float = 100.0
+    clip_value: bool = True  # V and TD targets within [-cameras / (1 - discount), 0]
+    target_update_rate: float = 0.005  # Polyak tau
+    q_hidden: int = 128
+    q_layers: int = 2
+    v_hidden: int = 128
+    v_layers: int = 2
+    policy_hidden: int = 128
+    policy_layers: int = 4
+    log_std_min: float = -2.0
+    log_std_max: float = -1.0
+    actor_weight_decay: float = 1e-4
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    value_lr: float = 3e-4
+    her_ratio: float = 0.15  # future hindsight relabelling
+    dropout_p: float = 0.5  # `dropout` method: each camera pair zeroed with this probability
+    # lerobot-train reads frames t, t+1 and these later frames as hindsight goal candidates
+    # (the fast trainer draws any later frame of the episode)
+    her_offsets: list[int] = field(default_factory=lambda: [2, 5, 10, 20, 50])
+
+    # evaluation (Table 4): each step, each camera's image is dropped with this probability
+    eval_mask_p: float = 0.0
+    eval_mask_seed: int = 0
+
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,  # the encoders take images in [0, 1]
+            "STATE": NormalizationMode.IDENTITY,
+            "ENV": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.IDENTITY,  # actions are already in [-1, 1]
+        }
+    )
+    push_to_hub: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of {list(METHODS)}")
+        if not self.cameras or len(set(self.cameras)) != len(self.cameras):
+            raise ValueError(f"cameras must be a non-empty list of distinct names, got {self.cameras}")
+        if self.method == "single" and len(self.cameras) != 1:
+            raise ValueError(f"method 'single' takes one camera, got {self.cameras}")
+        if self.method != "single" and len(self.cameras) < 2:
+            raise ValueError(f"method {self.method!r} needs at least two cameras, got {self.cameras}")
+        if not 0.0 <= self.dropout_p < 1.0 or not 0.0 <= self.eval_mask_p < 1.0:
+            raise ValueError("dropout_p and eval_mask_p must be in [0, 1)")
+        if not self.encoders:
+            self._read_encoders()
+        missing = [c for c in self.cameras if c not in self.encoders]
+        if missing:
+            raise ValueError(f"no encoder for cameras {missing} (the config has {sorted(self.encoders)})")
+        if self.epsilon is None:
+            self.epsilon = [self._suggested_epsilon(c) for c in self.cameras]
+        if len(self.epsilon) != len(self.cameras):
+            raise ValueError(f"{len(self.epsilon)} epsilon values for {len(self.cameras)} cameras")
+
+    def _read_encoders(self) -> None:
+        if self.encoder_dir is None:
+            raise ValueError("set encoder_dir: the folder with one VQ-VAE checkpoint per camera (murm train-vqvae)")
+        for camera in self.cameras:
+            path = Path(self.encoder_dir) / camera / "config.json"
+            if not path.exists():
+                raise FileNotFoundError(f"no VQ-VAE for camera {camera!r}: {path} does not exist")
+            self.encoders[camera] = json.loads(path.read_text())
+
+    def _suggested_epsilon(self, camera: str) -> float:
+        path = Path(self.encoder_dir or "") / camera / LATENT_DISTANCE_FILE
+        if self.encoder_dir is None or not path.exists():
+            raise ValueError(
+                f"no epsilon for camera {camera!r}: pass epsilon explicitly or run `murm encode` "
+                f"with this encoder first (it writes {LATENT_DISTANCE_FILE})"
+            )
+        return float(json.loads(path.read_text())["suggested_epsilon"])
+
+    def encoder_config(self, camera: str) -> VQVAEConfig:
+        return VQVAEConfig(**self.encoders[camera])
+
+    @property
+    def latent_dim(self) -> int:
+        return self.encoder_config(self.cameras[0]).latent_dim
+
+    @property
+    def action_dim(self) -> int:
+        return self.output_features["action"].shape[0] if self.output_features else 4
+
+    # --- LeRobot's PreTrainedConfig interface -------------------------------------------
+    @property
+    def observation_delta_indices(self) -> list[int]:
+        return [0, 1, *self.her_offsets]
+
+    @property
+    def action_delta_indices(self) -> None:
+        return None
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    def get_optimizer_preset(self) -> FusedAdamConfig:
+        # the three networks' learning rates are set per parameter group by the policy
+        return FusedAdamConfig(lr=self.critic_lr, grad_clip_norm=0.0)
+
+    def get_scheduler_preset(self) -> None:
+        return None
+
+    def validate_features(self) -> None:
+        visual = {k: ft for k, ft in self.input_features.items() if ft.type is FeatureType.VISUAL}
+        for camera in self.cameras:
+            size = self.encoder_config(camera).image_size
+            for key in (image_feature_key(camera), goal_feature_key(camera)):
+                if key not in visual:
+                    raise ValueError(f"the policy needs {key}; the data has {sorted(visual)}")
+                if tuple(visual[key].shape) != (3, size, size):
+                    raise ValueError(
+                        f"{key} has shape {tuple(visual[key].shape)}; the {camera} encoder takes (3, {size}, {size})"
+                    )

@@ -1,0 +1,95 @@
+"""Success rate of a MURM policy in the simulator over a fixed list of seeded episodes.
+
+An episode succeeds if the task's success condition holds at any step, as in
+`lerobot-eval`. Camera masking (Table 4) is the policy's own `eval_mask_p`, so this
+evaluation and `lerobot-eval` mask identically. The simulators run in worker processes
+(a gymnasium AsyncVectorEnv) while the policy acts on the whole batch at once.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from lerobot_murm.env import EPISODE_STEPS, GYM_IDS, goal_key
+from lerobot_murm.policy.configuration_murm import goal_feature_key, image_feature_key
+from lerobot_murm.policy.modeling_murm import MurmPolicy
+
+
+@dataclass
+class EvalResult:
+    task: str
+    mask_p: float
+    seeds: list[int]
+    successes: list[bool]
+    seconds: float
+    success_rate: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.success_rate = float(np.mean(self.successes)) if self.successes else 0.0
+
+
+def evaluation_seeds(episodes: int, first_seed: int = 100_000) -> list[int]:
+    """The fixed evaluation seeds: far from the collection's episode seeds (0, 1, ...)."""
+    return list(range(first_seed, first_seed + episodes))
+
+
+class Evaluator:
+    """Keeps `num_envs` simulator processes alive between evaluations."""
+
+    def __init__(self, task: str, cameras: list[str], image_size: int = 48, num_envs: int = 4):
+        if task not in GYM_IDS:
+            raise ValueError(f"unknown task {task!r}; choose one of {sorted(GYM_IDS)}")
+        self.task, self.cameras, self.num_envs = task, list(cameras), num_envs
+        kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
+        self.envs = gym.vector.AsyncVectorEnv(
+            [lambda: gym.make(GYM_IDS[task], **kwargs) for _ in range(num_envs)], context="fork"
+        )
+
+    def close(self) -> None:
+        self.envs.close()
+
+    def __enter__(self) -> Evaluator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _batch(self, observation: dict, device: torch.device) -> dict[str, torch.Tensor]:
+        """Env observations -> the policy's input, as LeRobot's preprocessing makes it (float in [0, 1])."""
+        pixels = observation["pixels"]
+        batch = {}
+        for camera in self.cameras:
+            for key, feature in ((camera, image_feature_key(camera)), (goal_key(camera), goal_feature_key(camera))):
+                images = torch.from_numpy(np.ascontiguousarray(pixels[key])).to(device)
+                batch[feature] = images.permute(0, 3, 1, 2).float().div_(255.0)
+        return batch
+
+    @torch.no_grad()
+    def evaluate(self, policy: MurmPolicy, seeds: list[int], mask_p: float = 0.0) -> EvalResult:
+        start = time.perf_counter()
+        device = next(policy.parameters()).device
+        was_training, old_mask_p = policy.training, policy.config.eval_mask_p
+        policy.eval()
+        policy.config.eval_mask_p = mask_p
+        policy.mask_generator.manual_seed(policy.config.eval_mask_seed)
+        successes: list[bool] = []
+        try:
+            for first in range(0, len(seeds), self.num_envs):
+                chunk = seeds[first : first + self.num_envs]
+                padded = chunk + [chunk[-1]] * (self.num_envs - len(chunk))  # idle envs repeat a seed
+                observation, _ = self.envs.reset(seed=padded)
+                succeeded = np.zeros(self.num_envs, bool)
+                for _ in range(EPISODE_STEPS):
+                    action = policy.select_action(self._batch(observation, device)).cpu().numpy()
+                    observation, _, _, _, info = self.envs.step(action)
+                    succeeded |= np.asarray(info["is_success"], bool)
+                successes += succeeded[: len(chunk)].tolist()
+        finally:
+            policy.config.eval_mask_p = old_mask_p
+            policy.train(was_training)
+        return EvalResult(self.task, mask_p, list(seeds), successes, time.perf_counter() - start)

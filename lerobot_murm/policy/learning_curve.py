@@ -1,0 +1,43 @@
+"""The learning-curve figure of a training run (paper Figures 5 and 6): success rate and losses."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def _read(path: Path) -> list[dict[str, float]]:
+    if not path.exists():
+        return []
+    with path.open() as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def plot_learning_curve(run_dir: Path) -> Path:
+    """Success rate per masking level over training steps, beside the three IQL losses."""
+    run_dir = Path(run_dir)
+    evals, logs = _read(run_dir / "eval.csv"), _read(run_dir / "log.csv")
+    fig, (ax_success, ax_loss) = plt.subplots(1, 2, figsize=(10, 3.6))
+    for mask_p in sorted({row["mask_p"] for row in evals}):
+        rows = [r for r in evals if r["mask_p"] == mask_p]
+        ax_success.plot([r["step"] for r in rows], [100 * r["success_rate"] for r in rows], marker="o",
+                        label=f"masking {mask_p:.0%}")
+    ax_success.set(xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102), title="evaluation")
+    if evals:
+        ax_success.legend()
+    for key in ("value_loss", "critic_loss", "actor_loss"):
+        ax_loss.plot([r["step"] for r in logs], [r[key] for r in logs], label=key)
+    ax_loss.set(xlabel="gradient steps", yscale="symlog", title="IQL losses")
+    if logs:
+        ax_loss.legend()
+    fig.suptitle(run_dir.name)
+    fig.tight_layout()
+    path = run_dir / "learning_curve.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,191 @@
+"""The MURM policy: frozen per-camera VQ-VAE encoders + goal-conditioned IQL (paper Algorithm 1).
+
+One `forward` serves both trainers. `lerobot-train` hands it LeRobot batches of images
+(frames t, t+1 and a few later frames for hindsight goals), which it encodes with its
+own encoders; the fast trainer (`murm train`) hands it latent transitions sampled from
+the latent cache. Either way the loss is IQL's three losses summed: each network's loss
+reaches only its own parameters (the others are detached), so one Adam with a parameter
+group per network is three Adams, and LeRobot's single optimizer step trains all three.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import torch
+from lerobot.policies.pretrained import PreTrainedPolicy
+from torch import Tensor, nn
+
+from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
+from lerobot_murm.policy.iql import (
+    DoubleQ,
+    GaussianPolicy,
+    advantage_weights,
+    camera_keep_mask,
+    expectile_loss,
+    mlp,
+    polyak_update,
+    sparse_reward,
+)
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE
+
+# keys of a latent transition batch (what the fast trainer's sampler returns)
+STATE, NEXT_STATE, ACTION, REWARD, DONE = "state", "next_state", "action", "reward", "done"
+LOGGED = ("value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight")
+
+
+class MurmPolicy(PreTrainedPolicy):
+    config_class = MurmConfig
+    name = "murm"
+
+    def __init__(self, config: MurmConfig, dataset_stats: Any = None, dataset_meta: Any = None, **kwargs: Any):
+        super().__init__(config)
+        if config.input_features:
+            config.validate_features()
+        self.cameras = list(config.cameras)
+        self.encoders = nn.ModuleDict({camera: VQVAE(config.encoder_config(camera)) for camera in self.cameras})
+        self.encoders.requires_grad_(False)
+        self.register_buffer("epsilon", torch.tensor(config.epsilon, dtype=torch.float32))
+        pair_dim, action_dim = 2 * config.latent_dim, config.action_dim
+        state_dim = pair_dim * len(self.cameras)
+        separated = config.method == "separated_q"
+        self.critic = DoubleQ(
+            groups=len(self.cameras) if separated else 1,
+            group_dim=pair_dim if separated else state_dim,
+            action_dim=action_dim,
+            hidden=config.q_hidden,
+            layers=config.q_layers,
+        )
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        self.value = mlp(state_dim, config.v_hidden, config.v_layers, 1)
+        self.actor = GaussianPolicy(
+            state_dim, action_dim, config.policy_hidden, config.policy_layers, config.log_std_min, config.log_std_max
+        )
+        self.mask_generator = torch.Generator().manual_seed(config.eval_mask_seed)
+        if dataset_meta is not None:  # a fresh policy for lerobot-train: its encoders come from encoder_dir
+            self.load_encoders()
+
+    def load_encoders(self) -> None:
+        """Copy the trained VQ-VAE weights from `config.encoder_dir` into the policy."""
+        for camera in self.cameras:
+            trained = VQVAE.load(f"{self.config.encoder_dir}/{camera}")
+            if trained.config.latent_dim != self.encoders[camera].config.latent_dim:
+                raise ValueError(f"the {camera} encoder in {self.config.encoder_dir} changed since this config was made")
+            self.encoders[camera].load_state_dict(trained.state_dict())
+
+    def train(self, mode: bool = True) -> MurmPolicy:
+        super().train(mode)
+        self.encoders.eval()  # frozen: never update the codebooks' EMA
+        return self
+
+    def get_optim_params(self) -> list[dict]:
+        c = self.config
+        return [
+            {"params": list(self.critic.parameters()), "lr": c.critic_lr},
+            {"params": list(self.value.parameters()), "lr": c.value_lr},
+            {"params": list(self.actor.parameters()), "lr": c.actor_lr, "weight_decay": c.actor_weight_decay},
+        ]
+
+    def reset(self) -> None:
+        """Nothing to clear: the policy acts on the current observation and goal only."""
+
+    def update(self) -> None:
+        """Called by the trainers after each optimizer step: Polyak-average the target critic."""
+        polyak_update(self.critic_target, self.critic, self.config.target_update_rate)
+
+    # --- observations -> latent states ---------------------------------------------------
+    @torch.no_grad()
+    def encode(self, camera: str, images: Tensor) -> Tensor:
+        """(..., 3, H, W) images in [0, 1] -> (..., latent_dim) latents."""
+        flat = images.reshape(-1, *images.shape[-3:])
+        return self.encoders[camera].encode(flat).view(*images.shape[:-3], -1)
+
+    def state_from_observation(self, batch: dict[str, Tensor], mask_p: float = 0.0) -> Tensor:
+        """(B, cameras, 2 * latent) state of one observation, cameras masked with mask_p (Table 4).
+
+        Several cameras: a masked camera's (z, zg) pair is zeroed as in dropout training, and
+        a step that would mask every camera masks none (the paper's rule). One camera: its
+        image goes black, so the policy sees a blank view.
+        """
+        images = {c: batch[image_feature_key(c)] for c in self.cameras}
+        batch_size, device = images[self.cameras[0]].shape[0], images[self.cameras[0]].device
+        keep = torch.ones(batch_size, len(self.cameras), dtype=torch.bool)
+        if mask_p > 0 and len(self.cameras) == 1:
+            visible = torch.rand(batch_size, generator=self.mask_generator) >= mask_p
+            images[self.cameras[0]] = images[self.cameras[0]] * visible.to(device).view(-1, 1, 1, 1)
+        elif mask_p > 0:
+            keep = camera_keep_mask(batch_size, len(self.cameras), mask_p, generator=self.mask_generator)
+        pairs = [
+            torch.cat([self.encode(c, images[c]), self.encode(c, batch[goal_feature_key(c)])], dim=-1)
+            for c in self.cameras
+        ]
+        return torch.stack(pairs, dim=1) * keep.to(device).unsqueeze(-1)
+
+    # --- acting ----------------------------------------------------------------------------
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
+        state = self.state_from_observation(batch, mask_p=self.config.eval_mask_p)
+        return self.actor.act(state, deterministic=True).unsqueeze(1)
+
+    @torch.no_grad()
+    def select_action(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
+        return self.predict_action_chunk(batch)[:, 0]
+
+    # --- learning --------------------------------------------------------------------------
+    def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
+        transition = batch if STATE in batch else self.transition_from_frames(batch)
+        return self.iql_loss(transition)
+
+    @torch.no_grad()
+    def transition_from_frames(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        """A LeRobot batch (frames t, t+1, t + her_offsets) -> latent transitions with HER goals.
+
+        Rows whose t+1 lies past the episode's end are dropped; a hindsight goal is a random
+        later frame among the offsets that exist in the episode.
+        """
+        pad = batch[f"{image_feature_key(self.cameras[0])}_is_pad"]  # (B, 2 + offsets)
+        valid = ~pad[:, 1]
+        z = {c: self.encode(c, batch[image_feature_key(c)][valid]) for c in self.cameras}  # (n, T, latent)
+        goal = {c: self.encode(c, batch[goal_feature_key(c)][valid, 0]) for c in self.cameras}
+        n, device = int(valid.sum()), pad.device
+        future_ok = ~pad[valid, 1:]  # candidate goals: t+1 and the offsets
+        pick = torch.multinomial(future_ok.float(), 1).squeeze(1) + 1
+        relabel = torch.rand(n, device=device) < self.config.her_ratio
+        rows = torch.arange(n, device=device)
+        z_goal = torch.stack([torch.where(relabel[:, None], z[c][rows, pick], goal[c]) for c in self.cameras], 1)
+        z_now = torch.stack([z[c][:, 0] for c in self.cameras], 1)
+        z_next = torch.stack([z[c][:, 1] for c in self.cameras], 1)
+        return {
+            STATE: torch.cat([z_now, z_goal], -1),
+            NEXT_STATE: torch.cat([z_next, z_goal], -1),
+            ACTION: batch["action"][valid],
+            REWARD: sparse_reward(z_next, z_goal, self.epsilon),
+            DONE: torch.zeros(n, device=device),
+        }
+
+    def iql_loss(self, transition: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+        c = self.config
+        state, next_state, action = transition[STATE], transition[NEXT_STATE], transition[ACTION]
+        if c.method == "dropout":  # the same cameras vanish from s_t and s_t+1
+            keep = camera_keep_mask(state.shape[0], state.shape[1], c.dropout_p, device=state.device).unsqueeze(-1)
+            state, next_state = state * keep, next_state * keep
+        critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)
+        with torch.no_grad():
+            q_target = self.critic_target(critic_input, action).min(0).values
+            next_v = self.value(next_state.flatten(1)).squeeze(-1)
+            td_target = transition[REWARD] + c.discount * (1.0 - transition[DONE]) * next_v
+            if c.clip_value:  # a sparse reward in [-cameras, 0] bounds every return
+                q_target = q_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
+                td_target = td_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
+        v = self.value(state.flatten(1)).squeeze(-1)
+        value_loss = expectile_loss(q_target - v, c.expectile)
+        q = self.critic(critic_input, action)
+        critic_loss = (q - td_target).pow(2).mean(1).sum()  # both sets' MSE
+        weights = advantage_weights(q_target - v, c.temperature, c.max_advantage_weight)
+        log_prob = self.actor.distribution(state).log_prob(action.clamp(-1.0, 1.0)).sum(-1)
+        actor_loss = -(weights * log_prob).mean()
+        loss = value_loss + critic_loss + actor_loss
+        logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(), v.mean(),
+                              transition[REWARD].mean(), weights.mean()]).detach()
+        return loss, dict(zip(LOGGED, logged.tolist(), strict=True))  # one device sync, not seven

@@ -1,0 +1,254 @@
+"""`murm train --config configs/...yaml`: the fast trainer.
+
+Batches come from the latent cache in memory (LatentReplay: transitions, next states
+and hindsight goals gathered by index), and go through the same `MurmPolicy.forward`,
+optimizer preset and `update()` as under `lerobot-train`; checkpoints are LeRobot's
+format (`pretrained_model/` with the processors), so `lerobot-eval` loads them.
+
+Output folder: `train_config.yaml`, `log.csv` (losses), `eval.csv` (success rate per
+evaluation and masking level), `learning_curve.png`, `checkpoints/last/` (policy +
+`training_state.pt`, written at every evaluation so an interrupted run resumes there),
+and `final_eval.json`.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
+import numpy as np
+import torch
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.utils.feature_utils import dataset_to_policy_features
+from lerobot.configs import FeatureType
+from tqdm import tqdm
+
+from lerobot_murm.device import resolve_device
+from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.policy.evaluate import Evaluator, evaluation_seeds
+from lerobot_murm.policy.learning_curve import plot_learning_curve
+from lerobot_murm.policy.modeling_murm import ACTION, DONE, NEXT_STATE, REWARD, STATE, MurmPolicy
+from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
+from lerobot_murm.policy.replay import LatentReplay
+from lerobot_murm.vqvae.frames import dataset_location, open_dataset
+from lerobot_murm.vqvae.latent_cache import build_latent_cache
+
+LOG_COLUMNS = ["step", "value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight", "steps_per_s"]
+EVAL_COLUMNS = ["step", "mask_p", "success_rate", "episodes", "seconds"]
+
+
+@dataclass
+class TrainConfig:
+    dataset: str  # a dataset folder or a Hub repo id
+    task: str = "place_in_box"  # the simulator task evaluations run
+    policy: PreTrainedConfig | None = None  # `type: murm` and its fields
+    output_dir: str = "outputs/train/murm"
+    cache_dir: str = "outputs/latent_cache"
+    steps: int = 50_000
+    batch_size: int = 256
+    seed: int = 0
+    device: str = "auto"
+    log_every: int = 250
+    eval_every: int = 5_000
+    eval_episodes: int = 20  # during training, for the learning curve
+    final_eval_episodes: int = 100
+    eval_mask_p: list[float] = field(default_factory=lambda: [0.0])  # masking levels evaluated
+    eval_envs: int = 4  # simulator processes
+    eval_seed: int = 100_000  # evaluation episode i has seed eval_seed + i
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.policy, MurmConfig):
+            raise ValueError("the config needs a `policy:` section with `type: murm`")
+        if self.steps < 1 or self.batch_size < 1 or self.eval_every < 1 or self.log_every < 1:
+            raise ValueError("steps, batch_size, eval_every and log_every must be positive")
+
+
+def build_policy(config: MurmConfig, dataset, device: torch.device) -> MurmPolicy:
+    """A fresh policy with the dataset's features and the trained encoders, as lerobot-train makes it."""
+    features = dataset_to_policy_features(dataset.meta.features)
+    config.output_features = {k: f for k, f in features.items() if f.type is FeatureType.ACTION}
+    config.input_features = {k: f for k, f in features.items() if k not in config.output_features}
+    config.device = device.type
+    policy = MurmPolicy(config)
+    policy.load_encoders()
+    return policy.to(device)
+
+
+def transition_batch(replay: LatentReplay, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    b = replay.sample(batch_size, generator)
+    return {STATE: b.state, NEXT_STATE: b.next_state, ACTION: b.action, REWARD: b.reward, DONE: b.done}
+
+
+class TrainingInterrupted(RuntimeError):
+    """Raised after a stop request, once the checkpoint to resume from is written."""
+
+
+class StopRequest:
+    """Ctrl-C / SIGTERM finish the current step, save a checkpoint, and stop."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def __enter__(self) -> StopRequest:
+        self._old = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def _handle(self, *_: object) -> None:
+        self.requested = True
+
+    def __exit__(self, *exc: object) -> None:
+        for s, handler in self._old.items():
+            signal.signal(s, handler)
+
+
+def _append_csv(path: Path, columns: list[str], rows: list[dict]) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, columns)
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+
+
+def _truncate_csv(path: Path, step: int) -> None:
+    """Drop rows written after the checkpoint a resumed run restarts from."""
+    if path.exists():
+        with path.open() as f:
+            rows = list(csv.DictReader(f))
+        columns = list(rows[0].keys()) if rows else []
+        path.unlink()
+        if rows:
+            _append_csv(path, columns, [r for r in rows if int(r["step"]) <= step])
+
+
+def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, generator: torch.Generator) -> None:
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    pretrained = tmp / "pretrained_model"
+    policy.save_pretrained(pretrained)
+    preprocessor, postprocessor = make_murm_pre_post_processors(policy.config)
+    preprocessor.save_pretrained(pretrained)
+    postprocessor.save_pretrained(pretrained)
+    state = {
+        "step": step,
+        "optimizer": optimizer.state_dict(),
+        "generator": generator.get_state(),
+        "torch_rng": torch.get_rng_state(),
+        "policy": policy.state_dict(),
+    }
+    torch.save(state, tmp / "training_state.pt")
+    if folder.exists():  # swap, so that a crash leaves one complete checkpoint
+        old = folder.with_name(folder.name + ".old")
+        folder.rename(old)
+        tmp.rename(folder)
+        shutil.rmtree(old)
+    else:
+        tmp.rename(folder)
+
+
+def train(config: TrainConfig) -> dict:
+    device = resolve_device(config.device)
+    out = Path(config.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / "final_eval.json").exists():  # a finished run is never redone
+        return json.loads((out / "final_eval.json").read_text())
+    policy_config: MurmConfig = config.policy
+    torch.manual_seed(config.seed)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
+
+    repo_id, root = dataset_location(config.dataset)
+    dataset = open_dataset(repo_id, root)
+    caches = [
+        build_latent_cache(repo_id, root, Path(policy_config.encoder_dir) / c, Path(config.cache_dir), str(device))
+        for c in policy_config.cameras
+    ]
+    actions = np.asarray(dataset.hf_dataset.with_format("arrow").select_columns(["action"])[:]["action"].to_pylist())
+    replay = LatentReplay(caches, actions, policy_config.epsilon, policy_config.her_ratio, device=device)
+    policy = build_policy(policy_config, dataset, device)
+    optimizer = policy_config.get_optimizer_preset().build(policy.get_optim_params())
+
+    last = out / "checkpoints" / "last"
+    step = 0
+    if (last / "training_state.pt").exists():
+        state = torch.load(last / "training_state.pt", map_location=device, weights_only=False)
+        policy.load_state_dict(state["policy"])
+        optimizer.load_state_dict(state["optimizer"])
+        generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        step = state["step"]
+        for name in ("log.csv", "eval.csv"):
+            _truncate_csv(out / name, step)
+        print(f"resuming from step {step} ({last})")
+    else:
+        for name in ("log.csv", "eval.csv"):
+            (out / name).unlink(missing_ok=True)
+    draccus.dump(config, (out / "train_config.yaml").open("w"))
+
+    seeds = evaluation_seeds(config.eval_episodes, config.eval_seed)
+    image_size = policy_config.encoder_config(policy_config.cameras[0]).image_size
+    with Evaluator(config.task, policy_config.cameras, image_size, config.eval_envs) as evaluator, StopRequest() as stop:
+
+        def run_evaluation(at_step: int, eval_seeds: list[int]) -> list[dict]:
+            rows = []
+            for mask_p in config.eval_mask_p:
+                result = evaluator.evaluate(policy, eval_seeds, mask_p)
+                rows.append({"step": at_step, "mask_p": mask_p, "success_rate": result.success_rate,
+                             "episodes": len(eval_seeds), "seconds": round(result.seconds, 1)})
+            return rows
+
+        policy.train()
+        progress = tqdm(total=config.steps, initial=step, desc="murm train", unit="step")
+        window: list[dict] = []
+        window_start = time.perf_counter()
+        while step < config.steps and not stop.requested:
+            loss, info = policy.forward(transition_batch(replay, config.batch_size, generator))
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            policy.update()
+            step += 1
+            window.append(info)
+            progress.update(1)
+            if step % config.log_every == 0 or step == config.steps:
+                row = {k: float(np.mean([w[k] for w in window])) for k in LOG_COLUMNS[1:-1]}
+                row |= {"step": step, "steps_per_s": len(window) / (time.perf_counter() - window_start)}
+                _append_csv(out / "log.csv", LOG_COLUMNS, [row])
+                progress.set_postfix(critic=f"{row['critic_loss']:.3f}", q=f"{row['q']:.1f}")
+                window, window_start = [], time.perf_counter()
+            if step % config.eval_every == 0 and step < config.steps:
+                rows = run_evaluation(step, seeds)
+                _append_csv(out / "eval.csv", EVAL_COLUMNS, rows)
+                progress.set_postfix(success=f"{rows[0]['success_rate']:.2f}")
+                save_checkpoint(last, policy, optimizer, step, generator)
+                plot_learning_curve(out)
+                window_start = time.perf_counter()
+        progress.close()
+        save_checkpoint(last, policy, optimizer, step, generator)
+        if step < config.steps:
+            raise TrainingInterrupted(f"stopped at step {step}; run the same command again to resume")
+        final_seeds = evaluation_seeds(config.final_eval_episodes, config.eval_seed)
+        final = run_evaluation(step, final_seeds)
+    _append_csv(out / "eval.csv", EVAL_COLUMNS, final)
+    plot_learning_curve(out)
+    summary = {
+        "method": policy_config.method,
+        "cameras": policy_config.cameras,
+        "task": config.task,
+        "steps": step,
+        "seed": config.seed,
+        "eval_seeds": [final_seeds[0], final_seeds[-1]],
+        "final": final,
+        "checkpoint": str(last / "pretrained_model"),
+    }
+    (out / "final_eval.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return summary
+
+
+def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
+    return draccus.parse(TrainConfig, config_path=str(path), args=overrides or [])

@@ -84,10 +84,9 @@ def _encode(args: argparse.Namespace) -> None:
     import json
 
     from lerobot_murm.collection.dataset import episode_successes
-    from lerobot_murm.policy.configuration_murm import LATENT_DISTANCE_FILE
     from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
-    from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances
+    from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances, public_statistics, save_beside_encoder
 
     repo_id, root = dataset_location(args.dataset)
     cache_dir = Path(args.cache_dir)
@@ -96,10 +95,9 @@ def _encode(args: argparse.Namespace) -> None:
     for encoder in args.encoders:
         cache = build_latent_cache(repo_id, root, Path(encoder), cache_dir, device=args.device)
         stats.append(distance_statistics(cache, successes))
-        public = {k: v for k, v in stats[-1].items() if not k.startswith("_")}
-        (Path(encoder) / LATENT_DISTANCE_FILE).write_text(json.dumps(public, indent=2) + "\n")  # the policy's default epsilon
+        save_beside_encoder(stats[-1], Path(encoder))
         print(f"{cache.camera}: {len(cache.indices)} frames cached; suggested epsilon {stats[-1]['suggested_epsilon']:.2f}")
-    public = [{k: v for k, v in s.items() if not k.startswith("_")} for s in stats]
+    public = [public_statistics(s) for s in stats]
     (cache_dir / "epsilon.json").write_text(json.dumps(public, indent=2) + "\n")
     plot_distances(stats, cache_dir / "latent_distances.png")
     print(f"wrote {cache_dir / 'epsilon.json'} and {cache_dir / 'latent_distances.png'}")

@@ -16,3 +16,30 @@ def make_env():
     yield _make
     for env in envs:
         env.close()
+
+
+@pytest.fixture(scope="session")
+def tiny_pipeline(tmp_path_factory):
+    """A real but tiny pipeline: 6 place_in_box episodes with two 16x16 cameras, a small
+    VQ-VAE per camera, and the latent-distance file the policy takes its epsilon from.
+    Returns (dataset_root, encoder_dir); encoder_dir/<camera> are the checkpoints."""
+    from lerobot_murm.collection import CollectConfig, collect
+    from lerobot_murm.collection.dataset import episode_successes
+    from lerobot_murm.vqvae import VQVAEConfig
+    from lerobot_murm.vqvae.latent_cache import build_latent_cache
+    from lerobot_murm.vqvae.latent_distance import distance_statistics, save_beside_encoder
+    from lerobot_murm.vqvae.train import train_vqvae
+
+    base = tmp_path_factory.mktemp("pipeline")
+    root, encoders, cache = base / "place_in_box", base / "vqvae", base / "cache"
+    collect(CollectConfig(task="place_in_box", root=root, episodes=6, workers=1, cameras=("global", "adjacent"), image_size=16))
+    tiny = VQVAEConfig(steps=30, batch_size=32, hidden_channels=16, residual_channels=8, codebook_size=32)
+    successes = episode_successes(TINY_REPO, root)
+    for camera in ("global", "adjacent"):
+        train_vqvae(TINY_REPO, root, camera, encoders / camera, tiny, device="cpu")
+        stats = distance_statistics(build_latent_cache(TINY_REPO, root, encoders / camera, cache), successes)
+        save_beside_encoder(stats, encoders / camera)
+    return root, encoders
+
+
+TINY_REPO = "local/place_in_box"

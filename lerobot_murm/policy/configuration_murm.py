@@ -17,10 +17,9 @@ import torch
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig, OptimizerConfig
 
-from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
+from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
 
 METHODS = ("single", "concat", "dropout", "separated_q")
-LATENT_DISTANCE_FILE = "latent_distance.json"  # written by `murm encode` beside each encoder
 
 
 def image_feature_key(camera: str) -> str:

@@ -13,7 +13,8 @@ them into a LeRobot policy and the fast trainer samples batches for them.
 - dropout: whole (z_k, zg_k) pairs zeroed with probability p, never all cameras.
 
 The policy is a Gaussian whose mean is squashed by tanh and whose log-std is a learned
-state-independent vector clamped to [log_std_min, log_std_max]; actions are clipped
+state-independent vector squashed into [log_std_min, log_std_max] by a sigmoid (a hard
+clamp would stop its gradient whenever it sits outside the range); actions are clipped
 to [-1, 1] (no tanh change of variables, as in IQL's reference implementation).
 """
 
@@ -108,12 +109,13 @@ class GaussianPolicy(nn.Module):
                  log_std_min: float, log_std_max: float):
         super().__init__()
         self.mean = mlp(state_dim, hidden, layers, action_dim)
-        self.log_std = nn.Parameter(torch.zeros(action_dim))
+        self.log_std_logit = nn.Parameter(torch.zeros(action_dim))  # starts mid-range
         self.log_std_min, self.log_std_max = log_std_min, log_std_max
 
     def distribution(self, state: torch.Tensor) -> torch.distributions.Normal:
         mean = torch.tanh(self.mean(state.flatten(1)))
-        std = self.log_std.clamp(self.log_std_min, self.log_std_max).exp()
+        span = self.log_std_max - self.log_std_min
+        std = (self.log_std_min + span * torch.sigmoid(self.log_std_logit)).exp()
         return torch.distributions.Normal(mean, std.expand_as(mean))
 
     def act(self, state: torch.Tensor, deterministic: bool = True) -> torch.Tensor:

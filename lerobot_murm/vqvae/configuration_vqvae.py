@@ -6,6 +6,8 @@ import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+LATENT_DISTANCE_FILE = "latent_distance.json"  # beside a checkpoint: `murm encode`'s epsilon statistics
+
 
 @dataclass
 class VQVAEConfig:

@@ -9,6 +9,7 @@ P(final-success frame below) - P(random frame below).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import matplotlib
@@ -17,6 +18,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE  # noqa: E402
 from lerobot_murm.vqvae.latent_cache import LatentCache  # noqa: E402
 
 PERCENTILES = (5, 25, 50, 75, 95)
@@ -48,6 +50,16 @@ def distance_statistics(cache: LatentCache, episode_success: np.ndarray, samples
         "_reached": reached,
         "_random": random,
     }
+
+
+def public_statistics(stats: dict) -> dict:
+    """The JSON-able part of `distance_statistics` (without the raw distances)."""
+    return {k: v for k, v in stats.items() if not k.startswith("_")}
+
+
+def save_beside_encoder(stats: dict, encoder_dir: Path) -> None:
+    """Write the statistics where the MURM policy config looks for its default epsilon."""
+    (Path(encoder_dir) / LATENT_DISTANCE_FILE).write_text(json.dumps(public_statistics(stats), indent=2) + "\n")
 
 
 def _summary(values: np.ndarray) -> dict:

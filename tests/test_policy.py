@@ -1,0 +1,186 @@
+"""The `murm` LeRobot policy: configuration, both batch paths of `forward`, acting with
+camera masking, and the self-contained checkpoint."""
+
+import shutil
+
+import pytest
+import torch
+from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
+from lerobot_murm.policy.modeling_murm import MurmPolicy
+from lerobot_murm.policy.train import build_policy
+
+REPO = "local/place_in_box"
+
+
+def make_config(encoder_dir, **overrides) -> MurmConfig:
+    fields = {"method": "separated_q", "cameras": ["global", "adjacent"], "encoder_dir": str(encoder_dir)}
+    return MurmConfig(**fields | overrides)
+
+
+@pytest.fixture(scope="module")
+def dataset(tiny_pipeline):
+    root, _ = tiny_pipeline
+    return LeRobotDataset(REPO, root=root, video_backend="pyav")
+
+
+@pytest.fixture
+def policy(tiny_pipeline, dataset):
+    torch.manual_seed(0)
+    return build_policy(make_config(tiny_pipeline[1]), dataset, torch.device("cpu"))
+
+
+def observation(policy: MurmPolicy, batch: int = 3, seed: int = 0) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    size = policy.config.encoder_config(policy.cameras[0]).image_size
+    return {
+        key: torch.rand(batch, 3, size, size, generator=g)
+        for c in policy.cameras
+        for key in (image_feature_key(c), goal_feature_key(c))
+    }
+
+
+def test_lerobot_resolves_the_murm_policy_class_by_its_naming_convention():
+    assert get_policy_class("murm") is MurmPolicy
+
+
+def test_bad_configurations_fail_with_clear_messages(tiny_pipeline, tmp_path):
+    encoders = tiny_pipeline[1]
+    with pytest.raises(ValueError, match="unknown method 'attention'"):
+        make_config(encoders, method="attention")
+    with pytest.raises(ValueError, match="'single' takes one camera"):
+        make_config(encoders, method="single")
+    with pytest.raises(ValueError, match="needs at least two cameras"):
+        make_config(encoders, method="dropout", cameras=["global"])
+    with pytest.raises(FileNotFoundError, match="no VQ-VAE for camera 'top'"):
+        make_config(encoders, cameras=["global", "top"])
+    with pytest.raises(ValueError, match="set encoder_dir"):
+        MurmConfig(method="single", cameras=["global"])
+    shutil.copytree(encoders / "global", tmp_path / "global", ignore=shutil.ignore_patterns("latent_distance.json"))
+    with pytest.raises(ValueError, match="pass epsilon explicitly or run `murm encode`"):
+        make_config(tmp_path, method="single", cameras=["global"])
+    assert make_config(tmp_path, method="single", cameras=["global"], epsilon=[2.0]).epsilon == [2.0]
+
+
+def test_features_are_checked_against_the_encoders(tiny_pipeline):
+    config = make_config(tiny_pipeline[1])
+    image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))
+    config.input_features = {image_feature_key("global"): image, goal_feature_key("global"): image}
+    with pytest.raises(ValueError, match="needs observation.images.adjacent"):
+        config.validate_features()
+    big = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 48, 48))
+    config.input_features = {k: big for c in ("global", "adjacent") for k in (image_feature_key(c), goal_feature_key(c))}
+    with pytest.raises(ValueError, match="encoder takes \\(3, 16, 16\\)"):
+        config.validate_features()
+
+
+def test_the_epsilon_defaults_to_the_suggestion_murm_encode_wrote(tiny_pipeline):
+    import json
+
+    config = make_config(tiny_pipeline[1])
+    expected = [json.loads((tiny_pipeline[1] / c / "latent_distance.json").read_text())["suggested_epsilon"]
+                for c in ("global", "adjacent")]
+    assert config.epsilon == pytest.approx(expected)
+
+
+@pytest.mark.parametrize("method", ["single", "concat", "dropout", "separated_q"])
+def test_forward_on_lerobot_frames_trains_every_network_but_not_the_encoders(tiny_pipeline, dataset, method):
+    cameras = ["global"] if method == "single" else ["global", "adjacent"]
+    config = make_config(tiny_pipeline[1], method=method, cameras=cameras)
+    torch.manual_seed(0)
+    policy = build_policy(config, dataset, torch.device("cpu")).train()
+    fps = dataset.meta.fps
+    framed = LeRobotDataset(REPO, root=tiny_pipeline[0], video_backend="pyav",
+                            delta_timestamps={k: [i / fps for i in config.observation_delta_indices]
+                                              for k in dataset.meta.camera_keys})
+    loader = torch.utils.data.DataLoader(framed, batch_size=16, shuffle=True,
+                                         generator=torch.Generator().manual_seed(0))
+    batch = next(iter(loader))
+    codebook = policy.encoders["global"].quantizer.codebook.clone()
+    loss, info = policy.forward(batch)
+    loss.backward()
+    assert torch.isfinite(loss) and set(info) >= {"value_loss", "critic_loss", "actor_loss"}
+    for network in (policy.critic, policy.value, policy.actor):
+        assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in network.parameters())
+    assert all(p.grad is None for p in policy.encoders.parameters())
+    assert all(p.grad is None for p in policy.critic_target.parameters())
+    torch.testing.assert_close(policy.encoders["global"].quantizer.codebook, codebook)  # no EMA drift
+    assert -len(cameras) <= info["reward"] <= 0
+
+
+def test_frames_past_the_episode_end_are_left_out_and_hindsight_goals_are_later_frames(policy, dataset, tiny_pipeline):
+    """The LeRobot path: t+1 past the end drops the row; a relabelled goal is a future frame's latent."""
+    policy.config.her_ratio = 1.0
+    fps = dataset.meta.fps
+    framed = LeRobotDataset(REPO, root=tiny_pipeline[0], video_backend="pyav",
+                            delta_timestamps={k: [i / fps for i in policy.config.observation_delta_indices]
+                                              for k in dataset.meta.camera_keys})
+    last = framed.meta.episodes["dataset_to_index"][0] - 1  # the last frame of episode 0
+    rows = [last - 60, last - 3, last]
+    batch = torch.utils.data.default_collate([framed[i] for i in rows])
+    transition = policy.transition_from_frames(batch)
+    assert transition["state"].shape[0] == 2  # the last frame has no successor
+    frames = batch[image_feature_key("global")][:2]  # (2, T, 3, H, W)
+    goals = transition["state"][:, 0, policy.config.latent_dim :]
+    for row, goal in zip(range(2), goals, strict=True):
+        candidates = policy.encode("global", frames[row, 1:][~batch[f"{image_feature_key('global')}_is_pad"][row, 1:]])
+        assert (candidates == goal).all(-1).any()
+
+
+def test_select_action_is_deterministic_and_within_the_action_box(policy):
+    policy.eval()
+    batch = observation(policy)
+    first, second = policy.select_action(batch), policy.select_action(batch)
+    assert first.shape == (3, 4) and first.abs().max() <= 1.0
+    torch.testing.assert_close(first, second)
+
+
+def test_masking_zeroes_whole_camera_pairs_at_rate_p_and_never_all(policy):
+    batch = observation(policy, batch=4000)
+    state = policy.state_from_observation(batch, mask_p=0.5)
+    zeroed = (state == 0).all(-1)  # (B, cameras)
+    assert not zeroed.all(-1).any()
+    assert abs(zeroed.float().mean().item() - 0.25) < 0.03  # p - p^2 per camera, with the all-dropped rule
+    assert not (policy.state_from_observation(batch) == 0).all(-1).any()
+
+
+def test_masking_blanks_a_single_camera_image(tiny_pipeline, dataset):
+    policy = build_policy(make_config(tiny_pipeline[1], method="single", cameras=["global"]), dataset, torch.device("cpu"))
+    batch = observation(policy, batch=2000)
+    blank = policy.encode("global", torch.zeros(1, 3, 16, 16))[0]
+    state = policy.state_from_observation(batch, mask_p=0.1)
+    latent = state[:, 0, : policy.config.latent_dim]
+    rate = (latent == blank).all(-1).float().mean().item()
+    assert 0.07 < rate < 0.13
+    goal = state[:, 0, policy.config.latent_dim :]
+    torch.testing.assert_close(goal, policy.encode("global", batch[goal_feature_key("global")]))  # goals stay
+
+
+def test_checkpoint_carries_the_encoders_and_loads_without_them(policy, tiny_pipeline, tmp_path):
+    policy.eval()
+    batch = observation(policy)
+    expected = policy.select_action(batch)
+    copy = tmp_path / "encoders"
+    shutil.copytree(tiny_pipeline[1], copy)
+    policy.config.encoder_dir = str(copy)
+    policy.save_pretrained(tmp_path / "ckpt")
+    shutil.rmtree(copy)  # the encoder folder is gone: the checkpoint alone must do
+    loaded = MurmPolicy.from_pretrained(tmp_path / "ckpt")
+    torch.testing.assert_close(loaded.select_action(batch), expected)
+    assert loaded.config.epsilon == policy.config.epsilon
+    pre, post = make_pre_post_processors(loaded.config, dataset_stats=None)
+    assert pre is not None and post is not None
+
+
+def test_polyak_update_moves_the_target_critic(policy):
+    before = [p.clone() for p in policy.critic_target.parameters()]
+    with torch.no_grad():
+        for p in policy.critic.parameters():
+            p.add_(1.0)
+    policy.update()
+    tau = policy.config.target_update_rate
+    for old, new, source in zip(before, policy.critic_target.parameters(), policy.critic.parameters(), strict=True):
+        torch.testing.assert_close(new, old + tau * (source - old))

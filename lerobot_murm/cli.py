@@ -172,15 +172,23 @@ def build_parser() -> argparse.ArgumentParser:
     enc.add_argument("--device", default="cpu")
     enc.set_defaults(func=_encode)
 
-    tr = commands.add_parser("train", help="train a MURM policy fast from the latent cache (resumes when rerun)")
+    tr = commands.add_parser(
+        "train",
+        help="train a MURM policy fast from the latent cache (resumes when rerun)",
+        epilog="Further --key=value arguments override the YAML, e.g. --steps=1000 --policy.method=dropout",
+    )
     tr.add_argument("--config", required=True, help="a YAML file, e.g. configs/place_in_box/separated_q.yaml")
-    tr.add_argument("overrides", nargs="*", help="draccus overrides, e.g. --steps=1000 --policy.method=dropout")
+    tr.set_defaults(accepts_overrides=True)  # any further --key=value overrides the YAML (draccus)
     tr.set_defaults(func=_train)
     return parser
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if extra and not getattr(args, "accepts_overrides", False):
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+    args.overrides = extra
     args.func(args)
 
 

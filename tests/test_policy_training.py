@@ -1,0 +1,92 @@
+"""Both trainers for real, in subprocesses: `lerobot-train --policy.type=murm` with evaluation in
+the simulator, `murm train` with resume, and `lerobot-eval` on either one's checkpoint."""
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BIN = Path(sys.executable).parent
+CAMERAS = "[global,adjacent]"
+ENV_ARGS = ["--env.type=murm", "--env.task=place_in_box", "--env.image_size=16", f"--env.cameras={CAMERAS}"]
+
+pytestmark = pytest.mark.slow
+
+
+def run(args: list[str], cwd: Path, timeout: int = 600) -> str:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
+    result = subprocess.run([str(a) for a in args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0, f"{args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
+    return result.stdout + result.stderr
+
+
+def lerobot_eval(checkpoint: Path, out: Path, *extra: str) -> dict:
+    run([BIN / "lerobot-eval", f"--policy.path={checkpoint}", *ENV_ARGS, "--eval.n_episodes=2", "--eval.batch_size=2",
+         f"--output_dir={out}", *extra], cwd=out.parent)
+    return json.loads((out / "eval_info.json").read_text())["overall"]
+
+
+def test_lerobot_train_evaluates_in_the_simulator_and_lerobot_eval_loads_its_checkpoint(tiny_pipeline, tmp_path):
+    root, encoders = tiny_pipeline
+    log = run([
+        BIN / "lerobot-train", "--policy.type=murm", "--policy.method=dropout", f"--policy.cameras={CAMERAS}",
+        f"--policy.encoder_dir={encoders}", "--dataset.repo_id=local/place_in_box", f"--dataset.root={root}",
+        *ENV_ARGS, "--steps=4", "--batch_size=4", "--env_eval_freq=4", "--eval.n_episodes=1", "--eval.batch_size=1",
+        "--save_freq=4", "--log_freq=1", f"--output_dir={tmp_path / 'run'}", "--num_workers=0", "--wandb.enable=false",
+    ], cwd=tmp_path)
+    assert "critic_loss" in log and "actor_loss" in log and "value_loss" in log
+    assert "pc_success" in log  # the evaluation in the simulator ran during training
+    checkpoint = tmp_path / "run" / "checkpoints" / "last" / "pretrained_model"
+    config = json.loads((checkpoint / "config.json").read_text())
+    assert config["type"] == "murm" and config["method"] == "dropout" and set(config["encoders"]) == {"global", "adjacent"}
+    overall = lerobot_eval(checkpoint, tmp_path / "eval", "--policy.eval_mask_p=0.5")
+    assert overall["n_episodes"] == 2 and 0.0 <= overall["pc_success"] <= 100.0
+
+
+def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resumes(tiny_pipeline, tmp_path):
+    root, encoders = tiny_pipeline
+    config = tmp_path / "tiny.yaml"
+    config.write_text(f"""
+dataset: {root}
+task: place_in_box
+output_dir: {tmp_path / 'run'}
+cache_dir: {tmp_path / 'cache'}
+steps: 6
+batch_size: 32
+log_every: 2
+eval_every: 3
+eval_episodes: 1
+final_eval_episodes: 2
+eval_mask_p: [0.0, 0.5]
+eval_envs: 1
+policy:
+  type: murm
+  method: separated_q
+  cameras: [global, adjacent]
+  encoder_dir: {encoders}
+""")
+    out = run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
+    assert "masking 50%: success" in out
+    run_dir = tmp_path / "run"
+    for name in ("log.csv", "eval.csv", "learning_curve.png", "final_eval.json", "train_config.yaml"):
+        assert (run_dir / name).exists(), name
+    with (run_dir / "eval.csv").open() as f:
+        evals = [(int(r["step"]), float(r["mask_p"])) for r in csv.DictReader(f)]
+    assert evals == [(3, 0.0), (3, 0.5), (6, 0.0), (6, 0.5)]
+    summary = json.loads((run_dir / "final_eval.json").read_text())
+    assert [r["episodes"] for r in summary["final"]] == [2, 2]
+
+    # a finished run is not redone; a longer one resumes from the checkpoint
+    assert "resuming" not in run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
+    (run_dir / "final_eval.json").unlink()
+    out = run([BIN / "murm", "train", "--config", config, "--steps=8"], cwd=tmp_path)
+    assert "resuming from step 6" in out
+    with (run_dir / "log.csv").open() as f:
+        assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]
+
+    overall = lerobot_eval(Path(summary["checkpoint"]), tmp_path / "eval")
+    assert overall["n_episodes"] == 2

@@ -184,3 +184,14 @@ def test_polyak_update_moves_the_target_critic(policy):
     tau = policy.config.target_update_rate
     for old, new, source in zip(before, policy.critic_target.parameters(), policy.critic.parameters(), strict=True):
         torch.testing.assert_close(new, old + tau * (source - old))
+
+
+def test_latent_statistics_standardise_the_networks_inputs(policy):
+    g = torch.Generator().manual_seed(0)
+    latents = [torch.randn(5000, policy.config.latent_dim, generator=g) * 0.2 + 0.3 for _ in policy.cameras]
+    latents[0][:, 0] = 0.7  # a feature that never changes: its std is floored, not zero
+    policy.fit_latent_statistics(latents)
+    state = torch.cat([torch.stack(latents, 1), torch.stack(latents, 1)], -1)  # goals share the statistics
+    normalised = policy.normalize(state)
+    assert normalised[:, :, 1:].mean().abs() < 0.01 and (normalised[:, :, 1:].std() - 1).abs() < 0.01
+    assert normalised[:, 0, 0].abs().max() < 1e-5 and policy.latent_std[0, 0] == policy.config.latent_std_floor

@@ -84,6 +84,7 @@ class MurmConfig(PreTrainedConfig):
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4
     value_lr: float = 3e-4
+    latent_std_floor: float = 0.05  # standardised inputs: std of a latent feature at least this
     her_ratio: float = 0.15  # future hindsight relabelling
     dropout_p: float = 0.5  # `dropout` method: each camera pair zeroed with this probability
     # lerobot-train reads frames t, t+1 and these later frames as hindsight goal candidates

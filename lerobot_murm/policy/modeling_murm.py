@@ -51,6 +51,9 @@ class MurmPolicy(PreTrainedPolicy):
         self.encoders = nn.ModuleDict({camera: VQVAE(config.encoder_config(camera)) for camera in self.cameras})
         self.encoders.requires_grad_(False)
         self.register_buffer("epsilon", torch.tensor(config.epsilon, dtype=torch.float32))
+        # per-feature statistics of each camera's latents: the networks see standardised inputs
+        self.register_buffer("latent_mean", torch.zeros(len(self.cameras), config.latent_dim))
+        self.register_buffer("latent_std", torch.ones(len(self.cameras), config.latent_dim))
         pair_dim, action_dim = 2 * config.latent_dim, config.action_dim
         state_dim = pair_dim * len(self.cameras)
         separated = config.method == "separated_q"
@@ -67,8 +70,33 @@ class MurmPolicy(PreTrainedPolicy):
             state_dim, action_dim, config.policy_hidden, config.policy_layers, config.log_std_min, config.log_std_max
         )
         self.mask_generator = torch.Generator().manual_seed(config.eval_mask_seed)
-        if dataset_meta is not None:  # a fresh policy for lerobot-train: its encoders come from encoder_dir
+        if dataset_meta is not None:  # a fresh policy for lerobot-train: encoders and statistics from the data
             self.load_encoders()
+            self.fit_latent_statistics(self._sample_dataset_latents(dataset_meta))
+
+    def fit_latent_statistics(self, latents: list[Tensor]) -> None:
+        """Per-feature mean and std of each camera's (N, latent_dim) latents; std floored so that
+        a code that almost never changes does not blow up when it does."""
+        for k, z in enumerate(latents):
+            self.latent_mean[k] = z.mean(0)
+            self.latent_std[k] = z.std(0).clamp(min=self.config.latent_std_floor)
+
+    @torch.no_grad()
+    def _sample_dataset_latents(self, dataset_meta: Any, frames: int = 10_000) -> list[Tensor]:
+        from lerobot_murm.vqvae.frames import decode_pngs, open_dataset, read_camera_pngs
+
+        dataset = open_dataset(dataset_meta.repo_id, dataset_meta.root)
+        latents = []
+        for camera in self.cameras:
+            pngs = read_camera_pngs(dataset, camera)
+            rows = torch.linspace(0, len(pngs.frames) - 1, min(frames, len(pngs.frames))).long()
+            images = torch.from_numpy(decode_pngs([pngs.frames[i] for i in rows]))
+            latents.append(self.encoders[camera].encode(images))
+        return latents
+
+    def normalize(self, state: Tensor) -> Tensor:
+        """Standardise (B, cameras, 2 * latent) states; z and z_goal share their camera's statistics."""
+        return (state - self.latent_mean.repeat(1, 2)) / self.latent_std.repeat(1, 2)
 
     def load_encoders(self) -> None:
         """Copy the trained VQ-VAE weights from `config.encoder_dir` into the policy."""
@@ -106,7 +134,8 @@ class MurmPolicy(PreTrainedPolicy):
         return self.encoders[camera].encode(flat).view(*images.shape[:-3], -1)
 
     def state_from_observation(self, batch: dict[str, Tensor], mask_p: float = 0.0) -> Tensor:
-        """(B, cameras, 2 * latent) state of one observation, cameras masked with mask_p (Table 4).
+        """(B, cameras, 2 * latent) standardised state of one observation, cameras masked with
+        mask_p (Table 4).
 
         Several cameras: a masked camera's (z, zg) pair is zeroed as in dropout training, and
         a step that would mask every camera masks none (the paper's rule). One camera: its
@@ -124,7 +153,7 @@ class MurmPolicy(PreTrainedPolicy):
             torch.cat([self.encode(c, images[c]), self.encode(c, batch[goal_feature_key(c)])], dim=-1)
             for c in self.cameras
         ]
-        return torch.stack(pairs, dim=1) * keep.to(device).unsqueeze(-1)
+        return self.normalize(torch.stack(pairs, dim=1)) * keep.to(device).unsqueeze(-1)
 
     # --- acting ----------------------------------------------------------------------------
     @torch.no_grad()
@@ -170,7 +199,8 @@ class MurmPolicy(PreTrainedPolicy):
 
     def iql_loss(self, transition: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         c = self.config
-        state, next_state, action = transition[STATE], transition[NEXT_STATE], transition[ACTION]
+        state, next_state = self.normalize(transition[STATE]), self.normalize(transition[NEXT_STATE])
+        action = transition[ACTION]
         if c.method == "dropout":  # the same cameras vanish from s_t and s_t+1
             keep = camera_keep_mask(state.shape[0], state.shape[1], c.dropout_p, device=state.device).unsqueeze(-1)
             state, next_state = state * keep, next_state * keep

@@ -171,6 +171,7 @@ def train(config: TrainConfig) -> dict:
     actions = np.asarray(dataset.hf_dataset.with_format("arrow").select_columns(["action"])[:]["action"].to_pylist())
     replay = LatentReplay(caches, actions, policy_config.epsilon, policy_config.her_ratio, device=device)
     policy = build_policy(policy_config, dataset, device)
+    policy.fit_latent_statistics(replay.latents)
     optimizer = policy_config.get_optimizer_preset().build(policy.get_optim_params())
 
     last = out / "checkpoints" / "last"

@@ -12,6 +12,7 @@ install: $(STAMP)
 
 run: $(STAMP)
 	$(VENV)/bin/murm demo --out outputs/demo
+	$(VENV)/bin/murm reproduce --config configs/reproduce/smoke.yaml
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite.
 test: $(STAMP)

@@ -117,6 +117,13 @@ def _train(args: argparse.Namespace) -> None:
     print(f"checkpoint: {summary['checkpoint']}")
 
 
+def _reproduce(args: argparse.Namespace) -> None:
+    from lerobot_murm.experiments.reproduce import load_reproduce_config, reproduce
+
+    out = reproduce(load_reproduce_config(args.config, args.overrides))
+    print(f"tables and figures: {out}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="murm", description="MURM: multi-view goal-conditioned offline RL")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -179,6 +186,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tr.add_argument("--config", required=True, help="a YAML file, e.g. configs/place_in_box/separated_q.yaml")
     tr.set_defaults(accepts_overrides=True)  # any further --key=value overrides the YAML (draccus)
+
+    rep = commands.add_parser(
+        "reproduce",
+        help="run an experiment grid from demonstrations to tables (skips finished runs)",
+        epilog="Further --key=value arguments override the YAML, e.g. --seeds=[0] --train.steps=1000",
+    )
+    rep.add_argument("--config", required=True, help="e.g. configs/reproduce/smoke.yaml")
+    rep.set_defaults(func=_reproduce, accepts_overrides=True)
     tr.set_defaults(func=_train)
     return parser
 

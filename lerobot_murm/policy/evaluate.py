@@ -75,6 +75,8 @@ class Evaluator:
         device = next(policy.parameters()).device
         was_training, old_mask_p = policy.training, policy.config.eval_mask_p
         policy.eval()
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # the simulator processes need the other cores more
         policy.config.eval_mask_p = mask_p
         policy.mask_generator.manual_seed(policy.config.eval_mask_seed)
         successes: list[bool] = []
@@ -90,6 +92,7 @@ class Evaluator:
                     succeeded |= np.asarray(info["is_success"], bool)
                 successes += succeeded[: len(chunk)].tolist()
         finally:
+            torch.set_num_threads(threads)
             policy.config.eval_mask_p = old_mask_p
             policy.train(was_training)
         return EvalResult(self.task, mask_p, list(seeds), successes, time.perf_counter() - start)

@@ -1,0 +1,1 @@
+"""Stage 5: the paper's experiments as grids (`murm reproduce`)."""

@@ -1,0 +1,83 @@
+"""The experiment grid `murm reproduce` runs: tasks x cells x seeds, each cell a training recipe.
+
+A cell names a method and its cameras and may change the demonstrations (Table 7) or the
+reward threshold (Table 2). Every stage has defaults at the paper's scale; the YAML files
+in `configs/reproduce/` say what each table varies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES
+
+
+@dataclass
+class CollectionSpec:
+    episodes: int = 1000
+    noise_std: float = 0.1
+    noisy_fraction: float = 1.0
+    seed: int = 0
+    workers: int = 2
+    image_size: int = 48
+
+
+@dataclass
+class VQVAESpec:
+    steps: int = 2500
+    batch_size: int = 128
+
+
+@dataclass
+class TrainSpec:
+    steps: int = 30_000
+    batch_size: int = 256
+    log_every: int = 250
+    eval_every: int = 5_000
+    eval_episodes: int = 20
+    final_eval_episodes: int = 100
+    eval_envs: int = 4
+
+
+@dataclass
+class CellSpec:
+    method: str
+    cameras: list[str]
+    label: str = ""  # default: method and cameras
+    eval_mask_p: list[float] = field(default_factory=lambda: [0.0])
+    epsilon: list[float] | None = None  # default: the suggestion of `murm encode`
+    episodes: int | None = None  # demonstrations (Table 7); default: the collection's
+    noisy_fraction: float | None = None  # share of noisy demonstrations (Table 7)
+    policy: dict = field(default_factory=dict)  # any other MurmConfig field
+
+    def __post_init__(self) -> None:
+        if not self.label:
+            self.label = f"{self.method}-{'+'.join(self.cameras)}"
+
+
+@dataclass
+class ReproduceConfig:
+    name: str
+    tasks: list[str] = field(default_factory=lambda: list(TASK_NAMES))
+    cells: list[CellSpec] = field(default_factory=list)
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
+    collection: CollectionSpec = field(default_factory=CollectionSpec)
+    vqvae: VQVAESpec = field(default_factory=VQVAESpec)
+    train: TrainSpec = field(default_factory=TrainSpec)
+    work_dir: str = "outputs/murm"  # datasets, encoders, caches, runs (large, not in git)
+    results_dir: str = "results"  # small result files, tables and figures (committed)
+    device: str = "auto"
+
+    def __post_init__(self) -> None:
+        unknown = [t for t in self.tasks if t not in TASK_NAMES]
+        if unknown:
+            raise ValueError(f"unknown tasks {unknown}; choose from {list(TASK_NAMES)}")
+        if not self.cells:
+            raise ValueError("the grid has no cells")
+        for cell in self.cells:
+            bad = [c for c in cell.cameras if c not in CAMERA_NAMES]
+            if bad:
+                raise ValueError(f"cell {cell.label}: unknown cameras {bad}; choose from {list(CAMERA_NAMES)}")
+        labels = [c.label for c in self.cells]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"cell labels must be unique, got {labels}")

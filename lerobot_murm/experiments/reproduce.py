@@ -1,0 +1,152 @@
+"""`murm reproduce --config configs/reproduce/<name>.yaml`: demonstrations -> VQ-VAEs -> IQL -> tables.
+
+Every artefact is built once and found again by name under `work_dir`: a dataset by its
+recipe, an encoder by its dataset, camera and steps, a latent cache by fingerprints, a
+training run by its cell and seed (a half-finished run resumes from its checkpoint).
+Each finished run writes a small JSON file under `results/<name>/runs/`; a rerun skips
+those, so a long grid runs in as many sittings as it takes. Missing pieces are rebuilt
+deterministically from their seeds.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import draccus
+import torch
+
+from lerobot_murm.collection import CollectConfig, collect
+from lerobot_murm.collection.dataset import episode_successes, read_recipe
+from lerobot_murm.device import resolve_device
+from lerobot_murm.env import CAMERA_NAMES
+from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
+from lerobot_murm.experiments.results import write_tables
+from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.policy.train import TrainConfig, train
+from lerobot_murm.vqvae import VQVAEConfig
+from lerobot_murm.vqvae.latent_cache import build_latent_cache
+from lerobot_murm.vqvae.latent_distance import distance_statistics, save_beside_encoder
+from lerobot_murm.vqvae.train import train_vqvae
+
+
+def dataset_root(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
+    c = config.collection
+    episodes = cell.episodes or c.episodes
+    noisy = c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction
+    name = f"{task}-{episodes}ep-std{c.noise_std:g}-noisy{noisy:g}-seed{c.seed}-{c.image_size}px"
+    return Path(config.work_dir) / "datasets" / name
+
+
+def ensure_dataset(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
+    root = dataset_root(config, task, cell)
+    c = config.collection
+    collect_config = CollectConfig(
+        task=task, root=root, episodes=cell.episodes or c.episodes, workers=c.workers, cameras=CAMERA_NAMES,
+        image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,
+        noisy_fraction=c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction,
+        resume=root.exists(),
+    )
+    summary = root / "meta" / "murm_collection.json"
+    done = summary.exists() and json.loads(summary.read_text())["episodes"] >= collect_config.episodes
+    if not (done and read_recipe(root) == collect_config.recipe):
+        collect(collect_config)
+    return root
+
+
+def ensure_encoders(config: ReproduceConfig, root: Path, cameras: list[str], device: str) -> Path:
+    """One VQ-VAE per camera in `<encoder_dir>/<camera>`, with its epsilon statistics beside it."""
+    encoder_dir = Path(config.work_dir) / "vqvae" / f"{root.name}-{config.vqvae.steps}steps"
+    repo_id = f"local/{root.name}"
+    vq_config = replace(VQVAEConfig(), steps=config.vqvae.steps, batch_size=config.vqvae.batch_size)
+    for camera in cameras:
+        out = encoder_dir / camera
+        if not (out / "metrics.json").exists():
+            train_vqvae(repo_id, root, camera, out, vq_config, device=device)
+        if not (out / "latent_distance.json").exists():
+            cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)
+            save_beside_encoder(distance_statistics(cache, episode_successes(repo_id, root)), out)
+    return encoder_dir
+
+
+def run_dir(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> Path:
+    return Path(config.work_dir) / "runs" / config.name / task / cell.label / f"seed{seed}"
+
+
+def result_path(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> Path:
+    return Path(config.results_dir) / config.name / "runs" / f"{task}__{cell.label}__seed{seed}.json"
+
+
+def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, root: Path, encoders: Path) -> TrainConfig:
+    policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), encoder_dir=str(encoders),
+                        epsilon=cell.epsilon, **cell.policy)
+    t = config.train
+    return TrainConfig(
+        dataset=str(root), task=task, policy=policy, output_dir=str(run_dir(config, task, cell, seed)),
+        cache_dir=str(Path(config.work_dir) / "latent_cache"), steps=t.steps, batch_size=t.batch_size, seed=seed,
+        device=config.device, log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
+        final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p), eval_envs=t.eval_envs,
+    )
+
+
+def hardware() -> str:
+    gpu = f", {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""
+    return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads{gpu}"
+
+
+def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, device: str) -> dict:
+    """One training run and its final evaluation; its result file, or the one already there."""
+    path = result_path(config, task, cell, seed)
+    if path.exists():
+        return json.loads(path.read_text())
+    root = ensure_dataset(config, task, cell)
+    encoders = ensure_encoders(config, root, cell.cameras, device)
+    start = time.perf_counter()
+    summary = train(train_config(config, task, cell, seed, root, encoders))
+    out = Path(summary["checkpoint"]).parents[2]
+    result = {
+        "experiment": config.name, "task": task, "cell": cell.label, "method": cell.method, "cameras": cell.cameras,
+        "seed": seed, "dataset": root.name, "steps": summary["steps"], "final": summary["final"],
+        "epsilon": json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"],
+        "eval_seeds": summary["eval_seeds"], "wall_s": round(time.perf_counter() - start, 1),
+        "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
+        "hardware": hardware(), "curve": _read_curve(out / "eval.csv"),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def _read_curve(path: Path) -> list[list[float]]:
+    lines = path.read_text().splitlines()[1:]
+    return [[float(x) for x in line.split(",")[:3]] for line in lines]  # step, mask_p, success_rate
+
+
+def _median_steps_per_s(path: Path) -> float:
+    rates = sorted(float(line.split(",")[-1]) for line in path.read_text().splitlines()[1:])
+    return round(rates[len(rates) // 2], 1) if rates else 0.0
+
+
+def reproduce(config: ReproduceConfig) -> Path:
+    device = str(resolve_device(config.device))
+    out = Path(config.results_dir) / config.name
+    out.mkdir(parents=True, exist_ok=True)
+    draccus.dump(config, (out / "config.yaml").open("w"))
+    results = []
+    total = len(config.tasks) * len(config.cells) * len(config.seeds)
+    for task in config.tasks:
+        for cell in config.cells:
+            for seed in config.seeds:
+                results.append(run_cell(config, task, cell, seed, device))
+                print(f"[{len(results)}/{total}] {task} {cell.label} seed {seed}: " + ", ".join(
+                    f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in results[-1]["final"]))
+    write_tables(config, results, out)
+    return out
+
+
+def load_reproduce_config(path: str | Path, overrides: list[str] | None = None) -> ReproduceConfig:
+    return draccus.parse(ReproduceConfig, config_path=str(path), args=overrides or [])
+

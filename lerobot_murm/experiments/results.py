@@ -1,0 +1,93 @@
+"""A grid's tables and figures from its per-run result files: mean and std over seeds.
+
+`table.csv` (one row per task, cell and masking level), `table.md` (cells x tasks, as in
+the paper's tables) and `curves.png` (success rate over training, mean and spread over
+seeds, in the style of the paper's Figures 5 and 6).
+"""
+
+from __future__ import annotations
+
+import csv
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+COLUMNS = ["task", "cell", "method", "cameras", "mask_p", "success_mean", "success_std", "seeds",
+           "episodes_per_seed", "steps", "wall_s_mean", "train_steps_per_s"]
+
+
+def aggregate(results: list[dict]) -> list[dict]:
+    groups: dict[tuple, list[tuple[dict, dict]]] = defaultdict(list)
+    for result in results:
+        for final in result["final"]:
+            groups[(result["task"], result["cell"], final["mask_p"])].append((result, final))
+    rows = []
+    for (task, cell, mask_p), members in groups.items():
+        rates = np.array([100 * final["success_rate"] for _, final in members])
+        first = members[0][0]
+        rows.append({
+            "task": task, "cell": cell, "method": first["method"], "cameras": "+".join(first["cameras"]),
+            "mask_p": mask_p, "success_mean": round(float(rates.mean()), 2),
+            "success_std": round(float(rates.std()), 2), "seeds": len(members),
+            "episodes_per_seed": members[0][1]["episodes"], "steps": first["steps"],
+            "wall_s_mean": round(float(np.mean([r["wall_s"] for r, _ in members])), 1),
+            "train_steps_per_s": round(float(np.mean([r["train_steps_per_s"] for r, _ in members])), 1),
+        })
+    return rows
+
+
+def markdown_table(rows: list[dict]) -> str:
+    tasks = list(dict.fromkeys(r["task"] for r in rows))
+    lines = ["| cell | masking | " + " | ".join(tasks) + " |", "|---|---:|" + "---:|" * len(tasks)]
+    for cell, mask_p in dict.fromkeys((r["cell"], r["mask_p"]) for r in rows):
+        cells = []
+        for task in tasks:
+            match = [r for r in rows if (r["task"], r["cell"], r["mask_p"]) == (task, cell, mask_p)]
+            cells.append(f"{match[0]['success_mean']:.1f} ± {match[0]['success_std']:.1f}" if match else "-")
+        lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(results: list[dict], path: Path) -> None:
+    tasks = list(dict.fromkeys(r["task"] for r in results))
+    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 3.8), squeeze=False)
+    for ax, task in zip(axes[0], tasks, strict=True):
+        curves: dict[tuple, list[dict[float, float]]] = defaultdict(list)
+        for result in (r for r in results if r["task"] == task):
+            by_mask: dict[float, dict[float, float]] = defaultdict(dict)
+            for step, mask_p, rate in result["curve"]:
+                by_mask[mask_p][step] = 100 * rate
+            for mask_p, points in by_mask.items():
+                curves[(result["cell"], mask_p)].append(points)
+        for (cell, mask_p), seeds in curves.items():
+            steps = sorted(set.intersection(*(set(s) for s in seeds)))
+            values = np.array([[s[step] for step in steps] for s in seeds])
+            label = f"{cell}" + (f", masking {mask_p:.0%}" if mask_p else "")
+            line = ax.plot(steps, values.mean(0), marker="o", markersize=3, label=label)[0]
+            ax.fill_between(steps, values.min(0), values.max(0), color=line.get_color(), alpha=0.15)
+        ax.set(title=task, xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102))
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_tables(config, results: list[dict], out: Path) -> list[dict]:
+    rows = aggregate(results)
+    with (out / "table.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    table = markdown_table(rows)
+    seeds = ", ".join(str(s) for s in config.seeds)
+    header = (f"# {config.name}\n\nSuccess rate (%), mean ± std over training seeds {seeds}; "
+              f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level.\n\n")
+    (out / "table.md").write_text(header + table)
+    plot_curves(results, out / "curves.png")
+    print(table)
+    return rows

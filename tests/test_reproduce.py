@@ -1,0 +1,63 @@
+"""`murm reproduce`: the smoke grid end to end (shrunk further), reuse of finished runs, and
+that every shipped config parses."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from lerobot_murm.experiments.reproduce import load_reproduce_config
+from lerobot_murm.policy.train import load_train_config
+
+REPO = Path(__file__).parents[1]
+MURM = Path(sys.executable).parent / "murm"
+TINY = [
+    "--collection.episodes=4", "--collection.image_size=16", "--vqvae.steps=20", "--vqvae.batch_size=16",
+    "--train.steps=20", "--train.log_every=10", "--train.eval_every=10", "--train.eval_episodes=1",
+    "--train.final_eval_episodes=2", "--train.eval_envs=1", "--train.batch_size=32",
+]
+
+
+def murm(args: list[str], cwd: Path) -> str:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    result = subprocess.run([str(MURM), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, f"murm {args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
+    return result.stdout
+
+
+@pytest.mark.slow
+def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
+    args = ["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), f"--work_dir={tmp_path / 'work'}",
+            f"--results_dir={tmp_path / 'results'}", *TINY]
+    out = murm(args, tmp_path)
+    assert "| single-global | 50% |" in out and "| separated_q-global+adjacent | 0% |" in out
+    results = tmp_path / "results" / "smoke"
+    for name in ("table.md", "table.csv", "curves.png", "config.yaml"):
+        assert (results / name).exists(), name
+    runs = sorted(p.name for p in (results / "runs").iterdir())
+    assert runs == ["place_in_box__separated_q-global+adjacent__seed0.json", "place_in_box__single-global__seed0.json"]
+    result = json.loads((results / "runs" / runs[0]).read_text())
+    assert [r["episodes"] for r in result["final"]] == [2, 2] and result["steps"] == 20
+
+    stamp = {p: p.stat().st_mtime_ns for p in (results / "runs").iterdir()}
+    again = murm(args, tmp_path)
+    assert again.splitlines()[-8:] == out.splitlines()[-8:]  # the same table, from the stored results
+    assert {p: p.stat().st_mtime_ns for p in (results / "runs").iterdir()} == stamp
+    assert "collect" not in again and "vq-vae" not in again
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_experiment_config_parses(path):
+    config = load_reproduce_config(path)
+    assert config.name == path.stem and config.cells
+
+
+@pytest.mark.parametrize("path", sorted(REPO.glob("configs/*/*.yaml")), ids=lambda p: f"{p.parent.name}/{p.stem}")
+def test_every_training_config_parses(path, tiny_pipeline):
+    if path.parent.name == "reproduce":
+        pytest.skip("experiment grid")
+    config = load_train_config(path, [f"--policy.encoder_dir={tiny_pipeline[1]}"])
+    assert config.task == path.parent.name and config.policy.method == path.stem

@@ -124,6 +124,13 @@ def _reproduce(args: argparse.Namespace) -> None:
     print(f"tables and figures: {out}")
 
 
+def _report(args: argparse.Namespace) -> None:
+    from lerobot_murm.experiments.report import write_report
+
+    preface = Path(args.preface).read_text() if args.preface else ""
+    print(f"wrote {write_report(Path(args.results), Path(args.out), preface)}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="murm", description="MURM: multi-view goal-conditioned offline RL")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -194,6 +201,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rep.add_argument("--config", required=True, help="e.g. configs/reproduce/smoke.yaml")
     rep.set_defaults(func=_reproduce, accepts_overrides=True)
+
+    report = commands.add_parser("report", help="REPORT.md: every finished grid in results/ beside the paper's tables")
+    report.add_argument("--results", default="results")
+    report.add_argument("--out", default="REPORT.md")
+    report.add_argument("--preface", default="docs/report_preface.md", help="Markdown put before the tables")
+    report.set_defaults(func=_report)
     tr.set_defaults(func=_train)
     return parser
 

@@ -48,6 +48,10 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert {p: p.stat().st_mtime_ns for p in (results / "runs").iterdir()} == stamp
     assert "collect" not in again and "vq-vae" not in again
 
+    murm(["report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="], tmp_path)
+    report = (tmp_path / "REPORT.md").read_text()
+    assert "## smoke" in report and "(n=1)" in report and "![learning curves](results/smoke/curves.png)" in report
+
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_experiment_config_parses(path):
@@ -55,9 +59,44 @@ def test_every_experiment_config_parses(path):
     assert config.name == path.stem and config.cells
 
 
-@pytest.mark.parametrize("path", sorted(REPO.glob("configs/*/*.yaml")), ids=lambda p: f"{p.parent.name}/{p.stem}")
+TRAINING_CONFIGS = sorted(p for p in REPO.glob("configs/*/*.yaml") if p.parent.name != "reproduce")
+
+
+@pytest.mark.parametrize("path", TRAINING_CONFIGS, ids=lambda p: f"{p.parent.name}/{p.stem}")
 def test_every_training_config_parses(path, tiny_pipeline):
-    if path.parent.name == "reproduce":
-        pytest.skip("experiment grid")
     config = load_train_config(path, [f"--policy.encoder_dir={tiny_pipeline[1]}"])
     assert config.task == path.parent.name and config.policy.method == path.stem
+
+
+def random_policy_success(task: str, seeds: list[int]) -> float:
+    """Uniform random actions on the same evaluation episodes."""
+    import gymnasium as gym
+    import numpy as np
+
+    from lerobot_murm.env import GYM_IDS
+
+    env = gym.make(GYM_IDS[task], cameras=["global"], render_mode=None)
+    rng, successes = np.random.default_rng(0), []
+    for seed in seeds:
+        env.reset(seed=seed)
+        succeeded = False
+        for _ in range(100):
+            succeeded |= env.step(rng.uniform(-1, 1, 4))[4]["is_success"]
+        successes.append(succeeded)
+    env.close()
+    return float(np.mean(successes))
+
+
+@pytest.mark.slow
+def test_the_smoke_pipeline_learns_a_policy_that_beats_a_random_one(tmp_path):
+    """The README's main command, at its real size: 40 demonstrations, 48x48 cameras."""
+    from lerobot_murm.policy.evaluate import evaluation_seeds
+
+    murm(["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), f"--work_dir={tmp_path / 'work'}",
+          f"--results_dir={tmp_path / 'results'}"], tmp_path)
+    runs = tmp_path / "results" / "smoke" / "runs"
+    result = json.loads((runs / "place_in_box__separated_q-global+adjacent__seed0.json").read_text())
+    learned = result["final"][0]
+    assert learned["mask_p"] == 0.0 and learned["episodes"] == 20
+    seeds = evaluation_seeds(20)
+    assert learned["success_rate"] >= random_policy_success("place_in_box", seeds) + 0.2

@@ -55,7 +55,7 @@ def markdown_table(rows: list[dict]) -> str:
 
 def plot_curves(results: list[dict], path: Path) -> None:
     tasks = list(dict.fromkeys(r["task"] for r in results))
-    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks) + 2, 4.8), squeeze=False)
     for ax, task in zip(axes[0], tasks, strict=True):
         curves: dict[tuple, list[dict[float, float]]] = defaultdict(list)
         for result in (r for r in results if r["task"] == task):
@@ -71,8 +71,9 @@ def plot_curves(results: list[dict], path: Path) -> None:
             line = ax.plot(steps, values.mean(0), marker="o", markersize=3, label=label)[0]
             ax.fill_between(steps, values.min(0), values.max(0), color=line.get_color(), alpha=0.15)
         ax.set(title=task, xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102))
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.06 + 0.035 * ((len(labels) + 2) // 3), 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

@@ -1,0 +1,62 @@
+"""REPORT.md: each finished grid's table beside the paper's, with configuration, hardware
+and wall time of every run. Built from `results/*/` alone, so it can be regenerated any
+time (`murm report`)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from lerobot_murm.experiments.paper import PAPER_TABLES, TASKS
+
+
+def _rows(table_csv: Path) -> list[dict]:
+    with table_csv.open() as f:
+        return list(csv.DictReader(f))
+
+
+def comparison(name: str, rows: list[dict]) -> str:
+    """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet."""
+    paper = PAPER_TABLES.get(name, {})
+    ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
+    keys = list(paper) + [k for k in dict.fromkeys((r["cell"], float(r["mask_p"])) for r in rows) if k not in paper]
+    lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" for t in TASKS) + " |",
+             "|---|---:|" + "---:|---:|" * len(TASKS)]
+    for cell, mask_p in keys:
+        cells = []
+        for i, task in enumerate(TASKS):
+            r = ours.get((cell, mask_p, task))
+            ours_text = f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-"
+            paper_text = f"{paper[(cell, mask_p)][i]:.1f}" if (cell, mask_p) in paper else ""
+            cells += [ours_text, paper_text]
+        lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run_list(results: Path) -> str:
+    lines = ["| task | cell | seed | steps | final success (masking: %) | wall | train steps/s | hardware |",
+             "|---|---|---:|---:|---|---:|---:|---|"]
+    for path in sorted((results / "runs").glob("*.json")):
+        r = json.loads(path.read_text())
+        finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in r["final"])
+        lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
+                     f"{r['wall_s'] / 60:.1f} min | {r['train_steps_per_s']} | {r['hardware']} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
+    results_dir, path = Path(results_dir).resolve(), Path(path).resolve()
+    sections = [preface] if preface else []
+    for results in sorted(p for p in Path(results_dir).iterdir() if (p / "table.csv").exists()):
+        rows = _rows(results / "table.csv")
+        where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
+        sections.append(
+            f"## {results.name}\n\nSuccess rate (%), mean ± std over training seeds (n = seeds finished), "
+            f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level; the paper's "
+            f"value beside ours. Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
+            + comparison(results.name, rows)
+            + f"\n![learning curves]({where / 'curves.png'})\n\nRuns:\n\n" + run_list(results)
+        )
+    path.write_text("\n".join(sections))
+    return path

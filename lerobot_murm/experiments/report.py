@@ -28,7 +28,8 @@ def comparison(name: str, rows: list[dict]) -> str:
         for i, task in enumerate(TASKS):
             r = ours.get((cell, mask_p, task))
             ours_text = f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-"
-            paper_text = f"{paper[(cell, mask_p)][i]:.1f}" if (cell, mask_p) in paper else ""
+            value = paper.get((cell, mask_p), (None,) * len(TASKS))[i]
+            paper_text = "" if value is None else f"{value:.1f}"
             cells += [ours_text, paper_text]
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -65,6 +65,27 @@ def test_bad_configurations_fail_with_clear_messages(tiny_pipeline, tmp_path):
     assert make_config(tmp_path, method="single", cameras=["global"], epsilon=[2.0]).epsilon == [2.0]
 
 
+def test_view_dropout_is_on_for_dropout_and_may_be_added_to_separated_q(tiny_pipeline, dataset):
+    encoders = tiny_pipeline[1]
+    assert make_config(encoders, method="dropout").view_dropout
+    assert not make_config(encoders, method="separated_q").view_dropout
+    with pytest.raises(ValueError, match="view_dropout applies to 'dropout' and 'separated_q', not 'concat'"):
+        make_config(encoders, method="concat", view_dropout=True)
+    with pytest.raises(ValueError, match="always drops views"):
+        make_config(encoders, method="dropout", view_dropout=False)
+
+    def loss_with(view_dropout: bool) -> float:
+        torch.manual_seed(0)
+        policy = build_policy(make_config(encoders, view_dropout=view_dropout), dataset, torch.device("cpu"))
+        state = torch.randn(64, 2, 2 * policy.config.latent_dim)
+        transition = {"state": state, "next_state": state, "action": torch.zeros(64, policy.config.action_dim),
+                      "reward": torch.zeros(64), "done": torch.zeros(64)}
+        return policy.iql_loss(transition)[0].item()
+
+    assert loss_with(True) != loss_with(False)
+    assert loss_with(False) == loss_with(False)
+
+
 def test_features_are_checked_against_the_encoders(tiny_pipeline):
     config = make_config(tiny_pipeline[1])
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))

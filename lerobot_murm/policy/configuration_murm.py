@@ -88,7 +88,10 @@ class MurmConfig(PreTrainedConfig):
     value_lr: float = 3e-4
     latent_std_floor: float = 0.05  # standardised inputs: std of a latent feature at least this
     her_ratio: float = 0.15  # future hindsight relabelling
-    dropout_p: float = 0.5  # `dropout` method: each camera pair zeroed with this probability
+    dropout_p: float = 0.5  # each camera pair zeroed with this probability in training
+    # zero camera pairs in training; None: only for `dropout`. True with `separated_q`
+    # combines both MURM methods (the paper leaves open whether its separated-Q runs did)
+    view_dropout: bool | None = None
     # lerobot-train reads frames t, t+1 and these later frames as hindsight goal candidates
     # (the fast trainer draws any later frame of the episode)
     her_offsets: list[int] = field(default_factory=lambda: [2, 5, 10, 20, 50])
@@ -119,6 +122,12 @@ class MurmConfig(PreTrainedConfig):
             raise ValueError(f"method {self.method!r} needs at least two cameras, got {self.cameras}")
         if not 0.0 <= self.dropout_p < 1.0 or not 0.0 <= self.eval_mask_p < 1.0:
             raise ValueError("dropout_p and eval_mask_p must be in [0, 1)")
+        if self.view_dropout is None:
+            self.view_dropout = self.method == "dropout"
+        if self.view_dropout and self.method in ("single", "concat"):
+            raise ValueError(f"view_dropout applies to 'dropout' and 'separated_q', not {self.method!r}")
+        if self.method == "dropout" and not self.view_dropout:
+            raise ValueError("method 'dropout' always drops views; use 'concat' for none")
         if not self.encoders:
             self._read_encoders()
         missing = [c for c in self.cameras if c not in self.encoders]

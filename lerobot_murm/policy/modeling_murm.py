@@ -201,7 +201,7 @@ class MurmPolicy(PreTrainedPolicy):
         c = self.config
         state, next_state = self.normalize(transition[STATE]), self.normalize(transition[NEXT_STATE])
         action = transition[ACTION]
-        if c.method == "dropout":  # the same cameras vanish from s_t and s_t+1
+        if c.view_dropout:  # the same cameras vanish from s_t and s_t+1
             keep = camera_keep_mask(state.shape[0], state.shape[1], c.dropout_p, device=state.device).unsqueeze(-1)
             state, next_state = state * keep, next_state * keep
         critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)

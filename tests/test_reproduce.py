@@ -68,6 +68,15 @@ def test_every_training_config_parses(path, tiny_pipeline):
     assert config.task == path.parent.name and config.policy.method == path.stem
 
 
+def test_an_encoder_is_reused_only_when_trained_to_the_end_for_the_asked_steps(tmp_path):
+    from lerobot_murm.experiments.reproduce import encoder_is_finished
+
+    assert not encoder_is_finished(tmp_path, 2500)  # nothing there
+    (tmp_path / "metrics.json").write_text(json.dumps({"steps": 2500, "interrupted": False}))
+    assert encoder_is_finished(tmp_path, 2500) and not encoder_is_finished(tmp_path, 5000)
+    (tmp_path / "metrics.json").write_text(json.dumps({"steps": 1200, "interrupted": True}))
+    assert not encoder_is_finished(tmp_path, 1200)
+
 
 def random_policy_success(task: str, seeds: list[int]) -> float:
     """Uniform random actions on the same evaluation episodes."""

@@ -26,6 +26,8 @@ class CollectionSpec:
 class VQVAESpec:
     steps: int = 2500
     batch_size: int = 128
+    # per-camera step counts: the moving active camera needs 5000 steps to reach 30 dB
+    camera_steps: dict[str, int] = field(default_factory=lambda: {"active": 5000})
 
 
 @dataclass

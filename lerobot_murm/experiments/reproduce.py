@@ -57,14 +57,23 @@ def ensure_dataset(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
     return root
 
 
+def encoder_is_finished(out: Path, steps: int) -> bool:
+    """A checkpoint trained to the end for `steps` (an interrupted one is trained again)."""
+    if not (out / "metrics.json").exists():
+        return False
+    metrics = json.loads((out / "metrics.json").read_text())
+    return not metrics["interrupted"] and metrics["steps"] == steps
+
+
 def ensure_encoders(config: ReproduceConfig, root: Path, cameras: list[str], device: str) -> Path:
     """One VQ-VAE per camera in `<encoder_dir>/<camera>`, with its epsilon statistics beside it."""
     encoder_dir = Path(config.work_dir) / "vqvae" / f"{root.name}-{config.vqvae.steps}steps"
     repo_id = f"local/{root.name}"
-    vq_config = replace(VQVAEConfig(), steps=config.vqvae.steps, batch_size=config.vqvae.batch_size)
     for camera in cameras:
         out = encoder_dir / camera
-        if not (out / "metrics.json").exists():
+        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
+        if not encoder_is_finished(out, steps):
+            vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
             train_vqvae(repo_id, root, camera, out, vq_config, device=device)
         if not (out / "latent_distance.json").exists():
             cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)

@@ -1,6 +1,7 @@
 """`murm reproduce`: the smoke grid end to end (shrunk further), reuse of finished runs, and
 that every shipped config parses."""
 
+import csv
 import json
 import os
 import subprocess
@@ -51,6 +52,11 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     murm(["report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="], tmp_path)
     report = (tmp_path / "REPORT.md").read_text()
     assert "## smoke" in report and "(n=1)" in report and "![learning curves](results/smoke/curves.png)" in report
+
+    murm([*args, "--seeds=[1]"], tmp_path)  # a later sitting: another seed joins the same tables
+    rows = list(csv.DictReader((results / "table.csv").open()))
+    assert len(rows) == 4 and {row["seeds"] for row in rows} == {"2"}
+    assert "training seeds 0, 1;" in (results / "table.md").read_text()
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)

@@ -152,8 +152,16 @@ def reproduce(config: ReproduceConfig) -> Path:
                 results.append(run_cell(config, task, cell, seed, device))
                 print(f"[{len(results)}/{total}] {task} {cell.label} seed {seed}: " + ", ".join(
                     f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in results[-1]["final"]))
-    write_tables(config, results, out)
+    write_tables(config, results + earlier_sittings(out / "runs", results), out)
     return out
+
+
+def earlier_sittings(runs: Path, results: list[dict]) -> list[dict]:
+    """Finished runs of the same grid not asked for this time (other seeds or tasks run in
+    another sitting): the tables cover every finished run."""
+    done = {(r["task"], r["cell"], r["seed"]) for r in results}
+    stored = (json.loads(p.read_text()) for p in sorted(runs.glob("*.json")))
+    return [r for r in stored if (r["task"], r["cell"], r["seed"]) not in done]
 
 
 def load_reproduce_config(path: str | Path, overrides: list[str] | None = None) -> ReproduceConfig:

@@ -85,7 +85,7 @@ def write_tables(config, results: list[dict], out: Path) -> list[dict]:
         writer.writeheader()
         writer.writerows(rows)
     table = markdown_table(rows)
-    seeds = ", ".join(str(s) for s in config.seeds)
+    seeds = ", ".join(str(s) for s in sorted({r["seed"] for r in results}))
     header = (f"# {config.name}\n\nSuccess rate (%), mean ± std over training seeds {seeds}; "
               f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level.\n\n")
     (out / "table.md").write_text(header + table)

@@ -8,6 +8,9 @@ in `configs/reproduce/` say what each table varies.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
+
+import draccus
 
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES
 
@@ -83,3 +86,7 @@ class ReproduceConfig:
         labels = [c.label for c in self.cells]
         if len(set(labels)) != len(labels):
             raise ValueError(f"cell labels must be unique, got {labels}")
+
+
+def load_reproduce_config(path: str | Path, overrides: list[str] | None = None) -> ReproduceConfig:
+    return draccus.parse(ReproduceConfig, config_path=str(path), args=overrides or [])

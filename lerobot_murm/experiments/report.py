@@ -8,7 +8,9 @@ import csv
 import json
 from pathlib import Path
 
+from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.paper import PAPER_TABLES, TASKS
+from lerobot_murm.experiments.results import grid_results, write_tables
 
 
 def _rows(table_csv: Path) -> list[dict]:
@@ -46,9 +48,19 @@ def run_list(results: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def refresh_tables(results: Path) -> None:
+    """Rebuild a grid's tables and curves from its run files (a sitting stopped part-way
+    leaves finished runs that its tables do not have yet)."""
+    if (results / "config.yaml").exists() and any((results / "runs").glob("*.json")):
+        config = load_reproduce_config(results / "config.yaml")
+        write_tables(config, grid_results(config, results / "runs"), results)
+
+
 def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
     results_dir, path = Path(results_dir).resolve(), Path(path).resolve()
     sections = [preface] if preface else []
+    for results in sorted(Path(results_dir).iterdir()):
+        refresh_tables(results)
     for results in sorted(p for p in Path(results_dir).iterdir() if (p / "table.csv").exists()):
         rows = _rows(results / "table.csv")
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results

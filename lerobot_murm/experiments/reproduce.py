@@ -23,8 +23,8 @@ from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import episode_successes, read_recipe
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
-from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
-from lerobot_murm.experiments.results import write_tables
+from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
+from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.train import TrainConfig, train
 from lerobot_murm.vqvae import VQVAEConfig
@@ -152,18 +152,6 @@ def reproduce(config: ReproduceConfig) -> Path:
                 results.append(run_cell(config, task, cell, seed, device))
                 print(f"[{len(results)}/{total}] {task} {cell.label} seed {seed}: " + ", ".join(
                     f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in results[-1]["final"]))
-    write_tables(config, results + earlier_sittings(out / "runs", results), out)
+    rows = write_tables(config, grid_results(config, out / "runs"), out)
+    print(markdown_table(rows))
     return out
-
-
-def earlier_sittings(runs: Path, results: list[dict]) -> list[dict]:
-    """Finished runs of the same grid not asked for this time (other seeds or tasks run in
-    another sitting): the tables cover every finished run."""
-    done = {(r["task"], r["cell"], r["seed"]) for r in results}
-    stored = (json.loads(p.read_text()) for p in sorted(runs.glob("*.json")))
-    return [r for r in stored if (r["task"], r["cell"], r["seed"]) not in done]
-
-
-def load_reproduce_config(path: str | Path, overrides: list[str] | None = None) -> ReproduceConfig:
-    return draccus.parse(ReproduceConfig, config_path=str(path), args=overrides or [])
-

@@ -8,6 +8,7 @@ seeds, in the style of the paper's Figures 5 and 6).
 from __future__ import annotations
 
 import csv
+import json
 from collections import defaultdict
 from pathlib import Path
 
@@ -90,5 +91,13 @@ def write_tables(config, results: list[dict], out: Path) -> list[dict]:
               f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level.\n\n")
     (out / "table.md").write_text(header + table)
     plot_curves(results, out / "curves.png")
-    print(table)
     return rows
+
+
+def grid_results(config, runs: Path) -> list[dict]:
+    """Every finished run in `runs/`, earlier sittings' included, in the grid's task and
+    cell order: the tables always cover everything finished so far."""
+    grid = [(task, cell.label) for task in config.tasks for cell in config.cells]
+    order = {key: i for i, key in enumerate(grid)}
+    stored = [json.loads(p.read_text()) for p in sorted(runs.glob("*.json"))]
+    return sorted(stored, key=lambda r: (order.get((r["task"], r["cell"]), len(order)), r["seed"]))

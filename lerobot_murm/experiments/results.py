@@ -56,6 +56,7 @@ def markdown_table(rows: list[dict]) -> str:
 
 def plot_curves(results: list[dict], path: Path) -> None:
     tasks = list(dict.fromkeys(r["task"] for r in results))
+    cells = list(dict.fromkeys(r["cell"] for r in results))
     fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks) + 2, 4.8), squeeze=False)
     for ax, task in zip(axes[0], tasks, strict=True):
         curves: dict[tuple, list[dict[float, float]]] = defaultdict(list)
@@ -65,12 +66,14 @@ def plot_curves(results: list[dict], path: Path) -> None:
                 by_mask[mask_p][step] = 100 * rate
             for mask_p, points in by_mask.items():
                 curves[(result["cell"], mask_p)].append(points)
-        for (cell, mask_p), seeds in curves.items():
+        for (cell, mask_p), seeds in curves.items():  # colour: cell; line style: masking
             steps = sorted(set.intersection(*(set(s) for s in seeds)))
             values = np.array([[s[step] for step in steps] for s in seeds])
             label = f"{cell}" + (f", masking {mask_p:.0%}" if mask_p else "")
-            line = ax.plot(steps, values.mean(0), marker="o", markersize=3, label=label)[0]
-            ax.fill_between(steps, values.min(0), values.max(0), color=line.get_color(), alpha=0.15)
+            color = plt.get_cmap("tab10")(cells.index(cell) % 10)
+            style = "-" if mask_p == 0 else (":" if mask_p < 0.3 else "--")
+            ax.plot(steps, values.mean(0), style, color=color, marker="o", markersize=3, label=label)
+            ax.fill_between(steps, values.min(0), values.max(0), color=color, alpha=0.15)
         ax.set(title=task, xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102))
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7, frameon=False)

@@ -59,9 +59,10 @@ def refresh_tables(results: Path) -> None:
 def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
     results_dir, path = Path(results_dir).resolve(), Path(path).resolve()
     sections = [preface] if preface else []
-    for results in sorted(Path(results_dir).iterdir()):
+    for results in sorted(results_dir.iterdir()):
         refresh_tables(results)
-    for results in sorted(p for p in Path(results_dir).iterdir() if (p / "table.csv").exists()):
+        if not (results / "table.csv").exists():
+            continue
         rows = _rows(results / "table.csv")
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
         sections.append(

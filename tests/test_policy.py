@@ -86,6 +86,29 @@ def test_view_dropout_is_on_for_dropout_and_may_be_added_to_separated_q(tiny_pip
     assert loss_with(False) == loss_with(False)
 
 
+def test_actor_scoped_dropout_hides_views_from_the_policy_only(tiny_pipeline, dataset):
+    encoders = tiny_pipeline[1]
+    with pytest.raises(ValueError, match="unknown dropout_scope 'critic'"):
+        make_config(encoders, view_dropout=True, dropout_scope="critic")
+
+    def logged_losses(**overrides) -> dict[str, float]:
+        torch.manual_seed(0)
+        policy = build_policy(make_config(encoders, **overrides), dataset, torch.device("cpu"))
+        state = torch.randn(64, 2, 2 * policy.config.latent_dim)
+        transition = {"state": state, "next_state": state.roll(1, 0), "action": torch.rand(64, policy.config.action_dim),
+                      "reward": torch.zeros(64), "done": torch.zeros(64)}
+        torch.manual_seed(1)
+        return policy.iql_loss(transition)[1]
+
+    no_dropout = logged_losses(view_dropout=False)
+    actor_only = logged_losses(view_dropout=True, dropout_scope="actor")
+    everywhere = logged_losses(view_dropout=True, dropout_scope="all")
+    for critic_side in ("value_loss", "critic_loss", "q", "v"):
+        assert actor_only[critic_side] == no_dropout[critic_side]
+    assert actor_only["actor_loss"] != no_dropout["actor_loss"]
+    assert everywhere["value_loss"] != no_dropout["value_loss"]
+
+
 def test_features_are_checked_against_the_encoders(tiny_pipeline):
     config = make_config(tiny_pipeline[1])
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))

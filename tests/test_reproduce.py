@@ -58,6 +58,42 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert len(rows) == 4 and {row["seeds"] for row in rows} == {"2"}
     assert "training seeds 0, 1;" in (results / "table.md").read_text()
 
+    # another grid with the same single-view recipe takes the finished run instead of training
+    other = tmp_path / "other.yaml"
+    other.write_text("name: other\ntasks: [place_in_box]\nseeds: [0]\n"
+                     "cells:\n  - {method: single, cameras: [global], label: global-only}\n")
+    murm(["reproduce", "--config", str(other), *args[3:]], tmp_path)  # the same TINY sizes as smoke
+    assert not (tmp_path / "work" / "runs" / "other").exists()
+    reused = json.loads((tmp_path / "results/other/runs/place_in_box__global-only__seed0.json").read_text())
+    original = json.loads((results / "runs/place_in_box__single-global__seed0.json").read_text())
+    assert reused["reused_from"] == "smoke/place_in_box__single-global__seed0"
+    assert reused["final"] == original["final"][:1] and reused["final"][0]["mask_p"] == 0.0
+    assert reused["experiment"] == "other" and reused["cell"] == "global-only"
+
+
+def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_levels(tmp_path):
+    from lerobot_murm.experiments.reproduce import finished_elsewhere, run_recipe
+
+    table4 = load_reproduce_config(REPO / "configs/reproduce/table4.yaml", [f"--results_dir={tmp_path}"])
+    table3 = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", [f"--results_dir={tmp_path}"])
+    single4, single3 = table4.cells[0], table3.cells[0]
+    recipe = run_recipe(table4, "pick_up", single4, 1)
+    assert recipe == run_recipe(table3, "pick_up", single3, 1)
+    assert recipe != run_recipe(table3, "pick_up", single3, 2)
+    assert recipe != run_recipe(table3, "place_in_box", single3, 1)
+    assert run_recipe(table4, "pick_up", table4.cells[3], 1) != run_recipe(table4, "pick_up", table4.cells[4], 1)
+
+    final = [{"mask_p": p, "success_rate": 0.5, "episodes": 100} for p in (0.0, 0.1)]
+    stored = {"final": final, "curve": [[5000, 0.0, 0.4], [5000, 0.1, 0.3]], "recipe": recipe}
+    (tmp_path / "table4" / "runs").mkdir(parents=True)
+    (tmp_path / "table4" / "runs" / "pick_up__single-global__seed1.json").write_text(json.dumps(stored))
+    found = finished_elsewhere(table3, recipe, [0.0])
+    assert found["final"] == final[:1] and found["curve"] == [[5000, 0.0, 0.4]]
+    assert found["reused_from"] == "table4/pick_up__single-global__seed1"
+    assert finished_elsewhere(table3, recipe, [0.0, 0.5]) is None  # never evaluated with 50 % masking
+    assert finished_elsewhere(table3, run_recipe(table3, "pick_up", single3, 2), [0.0]) is None
+    assert finished_elsewhere(table4, recipe, [0.0]) is None  # a grid does not reuse itself
+
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_experiment_config_parses(path):
@@ -118,3 +154,27 @@ def test_the_smoke_single_view_cell_learns_a_policy_that_beats_random_actions(tm
     assert learned["mask_p"] == 0.0
     random = random_policy_success("place_in_box", evaluation_seeds(learned["episodes"]))
     assert learned["success_rate"] >= random + 0.15, (learned, random)
+
+
+def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_runs(tmp_path):
+    import draccus
+
+    from lerobot_murm.experiments.report import write_report
+
+    grid = tmp_path / "results" / "table3"
+    (grid / "runs").mkdir(parents=True)
+    config = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", ["--tasks=[pick_up]", "--seeds=[0]"])
+    draccus.dump(config, (grid / "config.yaml").open("w"))
+    for cell, reused in (("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}), ("single-top", {})):
+        run = {"task": "pick_up", "cell": cell, "method": "single", "cameras": [cell.split("-")[1]], "seed": 0,
+               "steps": 20000, "final": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}], "wall_s": 360.0,
+               "train_steps_per_s": 90.0, "hardware": "cpu", "curve": [[20000, 0.0, 0.5]]} | reused
+        (grid / "runs" / f"pick_up__{cell}__seed0.json").write_text(json.dumps(run))
+    (grid / "discussion.md").write_text("Top beats nothing here.\n")
+
+    report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
+    table, rest = report.split("![learning curves]")
+    assert "| single-top | 0% |" in table and "50.0 ± 0.0 (n=1)" in table
+    assert rest.index("Top beats nothing here.") < rest.index("Runs:")
+    assert "6.0 min (the run of table4/pick_up__single-global__seed0)" in rest
+    assert (grid / "table.csv").exists() and (grid / "curves.png").exists()

@@ -43,8 +43,9 @@ def run_list(results: Path) -> str:
     for path in sorted((results / "runs").glob("*.json")):
         r = json.loads(path.read_text())
         finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in r["final"])
+        wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
         lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
-                     f"{r['wall_s'] / 60:.1f} min | {r['train_steps_per_s']} | {r['hardware']} |")
+                     f"{wall} | {r['train_steps_per_s']} | {r['hardware']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -70,7 +71,9 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level; the paper's "
             f"value beside ours. Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows)
-            + f"\n![learning curves]({where / 'curves.png'})\n\nRuns:\n\n" + run_list(results)
+            + f"\n![learning curves]({where / 'curves.png'})\n\n"
+            + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
+            + "Runs:\n\n" + run_list(results)
         )
     path.write_text("\n".join(sections))
     return path

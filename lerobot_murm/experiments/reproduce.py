@@ -4,7 +4,9 @@ Every artefact is built once and found again by name under `work_dir`: a dataset
 recipe, an encoder by its dataset, camera and steps, a latent cache by fingerprints, a
 training run by its cell and seed (a half-finished run resumes from its checkpoint).
 Each finished run writes a small JSON file under `results/<name>/runs/`; a rerun skips
-those, so a long grid runs in as many sittings as it takes. Missing pieces are rebuilt
+those, so a long grid runs in as many sittings as it takes. A run another grid already
+finished with the same recipe (Table 3's global camera is Table 4's single-view
+baseline) is taken from there instead of trained again. Missing pieces are rebuilt
 deterministically from their seeds.
 """
 
@@ -13,7 +15,7 @@ from __future__ import annotations
 import json
 import platform
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import draccus
@@ -106,11 +108,45 @@ def hardware() -> str:
     return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads{gpu}"
 
 
+def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
+    """Everything that decides what a run trains (not its name, grid or evaluation masks)."""
+    return json.loads(json.dumps({  # as it reads back from a result file
+        "task": task, "dataset": dataset_root(config, task, cell).name, "method": cell.method,
+        "cameras": list(cell.cameras), "epsilon": cell.epsilon, "policy": dict(cell.policy),
+        "vqvae": asdict(config.vqvae), "train": asdict(config.train), "seed": seed,
+    }))
+
+
+def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[float]) -> dict | None:
+    """A result of another grid with the same recipe, evaluated at every masking level asked,
+    cut down to those levels; None if there is none."""
+    for path in sorted(Path(config.results_dir).glob("*/runs/*.json")):
+        if path.parent.parent.name == config.name:
+            continue
+        result = json.loads(path.read_text())
+        if result.get("recipe") != recipe or not set(mask_ps) <= {r["mask_p"] for r in result["final"]}:
+            continue
+        return result | {
+            "final": [r for r in result["final"] if r["mask_p"] in mask_ps],
+            "curve": [point for point in result["curve"] if point[1] in mask_ps],
+            "reused_from": f"{path.parent.parent.name}/{path.stem}",
+        }
+    return None
+
+
 def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, device: str) -> dict:
-    """One training run and its final evaluation; its result file, or the one already there."""
+    """One training run and its final evaluation; its result file, the one already there, or
+    another grid's run of the same recipe."""
     path = result_path(config, task, cell, seed)
     if path.exists():
         return json.loads(path.read_text())
+    recipe = run_recipe(config, task, cell, seed)
+    reused = finished_elsewhere(config, recipe, list(cell.eval_mask_p))
+    if reused is not None:
+        result = reused | {"experiment": config.name, "cell": cell.label}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(result, indent=1) + "\n")
+        return result
     root = ensure_dataset(config, task, cell)
     encoders = ensure_encoders(config, root, cell.cameras, device)
     start = time.perf_counter()
@@ -122,7 +158,7 @@ def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, devi
         "epsilon": json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"],
         "eval_seeds": summary["eval_seeds"], "wall_s": round(time.perf_counter() - start, 1),
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
-        "hardware": hardware(), "curve": _read_curve(out / "eval.csv"),
+        "hardware": hardware(), "curve": _read_curve(out / "eval.csv"), "recipe": recipe,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1) + "\n")

@@ -20,6 +20,7 @@ from lerobot.optim import AdamConfig, OptimizerConfig
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
 
 METHODS = ("single", "concat", "dropout", "separated_q")
+DROPOUT_SCOPES = ("all", "actor")
 
 
 def image_feature_key(camera: str) -> str:
@@ -92,6 +93,10 @@ class MurmConfig(PreTrainedConfig):
     # zero camera pairs in training; None: only for `dropout`. True with `separated_q`
     # combines both MURM methods (the paper leaves open whether its separated-Q runs did)
     view_dropout: bool | None = None
+    # which networks see the dropped pairs: "all" (the paper's dropout: V, Q and policy) or
+    # "actor" (only the policy; V and Q see every camera, so the advantages that weight the
+    # policy come from the full state while the policy learns to act with views missing)
+    dropout_scope: str = "all"
     # lerobot-train reads frames t, t+1 and these later frames as hindsight goal candidates
     # (the fast trainer draws any later frame of the episode)
     her_offsets: list[int] = field(default_factory=lambda: [2, 5, 10, 20, 50])
@@ -126,6 +131,8 @@ class MurmConfig(PreTrainedConfig):
             self.view_dropout = self.method == "dropout"
         if self.view_dropout and self.method in ("single", "concat"):
             raise ValueError(f"view_dropout applies to 'dropout' and 'separated_q', not {self.method!r}")
+        if self.dropout_scope not in DROPOUT_SCOPES:
+            raise ValueError(f"unknown dropout_scope {self.dropout_scope!r}; choose one of {list(DROPOUT_SCOPES)}")
         if self.method == "dropout" and not self.view_dropout:
             raise ValueError("method 'dropout' always drops views; use 'concat' for none")
         if not self.encoders:

@@ -201,9 +201,12 @@ class MurmPolicy(PreTrainedPolicy):
         c = self.config
         state, next_state = self.normalize(transition[STATE]), self.normalize(transition[NEXT_STATE])
         action = transition[ACTION]
+        actor_state = state
         if c.view_dropout:  # the same cameras vanish from s_t and s_t+1
             keep = camera_keep_mask(state.shape[0], state.shape[1], c.dropout_p, device=state.device).unsqueeze(-1)
-            state, next_state = state * keep, next_state * keep
+            actor_state = state * keep
+            if c.dropout_scope == "all":
+                state, next_state = actor_state, next_state * keep
         critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)
         with torch.no_grad():
             q_target = self.critic_target(critic_input, action).min(0).values
@@ -217,7 +220,7 @@ class MurmPolicy(PreTrainedPolicy):
         q = self.critic(critic_input, action)
         critic_loss = (q - td_target).pow(2).mean(1).sum()  # both sets' MSE
         weights = advantage_weights(q_target - v, c.temperature, c.max_advantage_weight)
-        log_prob = self.actor.distribution(state).log_prob(action.clamp(-1.0, 1.0)).sum(-1)
+        log_prob = self.actor.distribution(actor_state).log_prob(action.clamp(-1.0, 1.0)).sum(-1)
         actor_loss = -(weights * log_prob).mean()
         loss = value_loss + critic_loss + actor_loss
         logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(), v.mean(),

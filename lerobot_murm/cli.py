@@ -125,10 +125,13 @@ def _reproduce(args: argparse.Namespace) -> None:
 
 
 def _report(args: argparse.Namespace) -> None:
-    from lerobot_murm.experiments.report import write_report
+    from lerobot_murm.experiments.report import update_readme, write_report
 
     preface = Path(args.preface).read_text() if args.preface else ""
     print(f"wrote {write_report(Path(args.results), Path(args.out), preface)}")
+    if args.readme and Path(args.readme).exists():
+        filled = update_readme(Path(args.results), Path(args.readme))
+        print(f"{args.readme}: results of {', '.join(filled) or 'no grid'} refreshed")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -206,6 +209,8 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--results", default="results")
     report.add_argument("--out", default="REPORT.md")
     report.add_argument("--preface", default="docs/report_preface.md", help="Markdown put before the tables")
+    report.add_argument("--readme", default="README.md",
+                        help="its <!-- results:NAME --> blocks get NAME's table; '' leaves it alone")
     report.set_defaults(func=_report)
     tr.set_defaults(func=_train)
     return parser

@@ -178,3 +178,14 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert rest.index("Top beats nothing here.") < rest.index("Runs:")
     assert "6.0 min (the run of table4/pick_up__single-global__seed0)" in rest
     assert (grid / "table.csv").exists() and (grid / "curves.png").exists()
+
+    from lerobot_murm.experiments.report import update_readme
+
+    readme = tmp_path / "README.md"
+    readme.write_text("# x\n<!-- results:table3 -->\nSTALE TABLE\n<!-- /results:table3 -->\n<!-- results:table9 -->\nkept\n"
+                      "<!-- /results:table9 -->\nend\n")
+    assert update_readme(tmp_path / "results", readme) == ["table3"]
+    text = readme.read_text()
+    assert "STALE TABLE" not in text and "| single-top | 0% | - (18.8) | - (38.6) | 50 ± 0 (0.2) |" in text
+    assert "| single-global | 0% | - (34.5) | - (46.6) | 50 ± 0 (15.7) |" in text
+    assert "kept" in text and text.endswith("end\n")

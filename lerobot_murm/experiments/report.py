@@ -1,11 +1,13 @@
 """REPORT.md: each finished grid's table beside the paper's, with configuration, hardware
 and wall time of every run. Built from `results/*/` alone, so it can be regenerated any
-time (`murm report`)."""
+time (`murm report`), which also refreshes the README's results tables (between
+`<!-- results:NAME -->` and `<!-- /results:NAME -->`)."""
 
 from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
@@ -77,3 +79,39 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         )
     path.write_text("\n".join(sections))
     return path
+
+
+def compact_table(name: str, rows: list[dict]) -> str:
+    """Mean ± std over seeds per (cell, masking) and task, the paper's value in brackets."""
+    paper = PAPER_TABLES.get(name, {})
+    ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
+    seeds = sorted({int(r["seeds"]) for r in rows})
+    lines = [f"| cell | masking | {' | '.join(TASKS)} |", "|---|---:|" + "---:|" * len(TASKS)]
+    for cell, mask_p in dict.fromkeys((r["cell"], float(r["mask_p"])) for r in rows):
+        texts = []
+        for i, task in enumerate(TASKS):
+            r = ours.get((cell, mask_p, task))
+            text = "-" if r is None else f"{float(r['success_mean']):.0f} ± {float(r['success_std']):.0f}"
+            value = paper.get((cell, mask_p), (None,) * len(TASKS))[i]
+            texts.append(text if value is None else f"{text} ({value:.1f})")
+        lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")
+    note = f"Training seeds per value: {', '.join(map(str, seeds))}; the paper's value in brackets."
+    return "\n".join(lines) + f"\n\n{note}\n"
+
+
+def update_readme(results_dir: Path, readme: Path) -> list[str]:
+    """Refill each `<!-- results:NAME -->` block of the README from results/NAME/table.csv;
+    returns the names refilled."""
+    text, filled = readme.read_text(), []
+
+    def refill(match: re.Match) -> str:
+        name = match.group(1)
+        table = Path(results_dir) / name / "table.csv"
+        if not table.exists():
+            return match.group(0)
+        filled.append(name)
+        return f"<!-- results:{name} -->\n{compact_table(name, _rows(table))}<!-- /results:{name} -->"
+
+    text = re.sub(r"<!-- results:(\w+) -->.*?<!-- /results:\1 -->", refill, text, flags=re.S)
+    readme.write_text(text)
+    return filled

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 BIN = Path(sys.executable).parent
 CAMERAS = "[global,adjacent]"
@@ -83,10 +84,15 @@ policy:
     # a finished run is not redone; a longer one resumes from the checkpoint
     assert "resuming" not in run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     (run_dir / "final_eval.json").unlink()
+    state_file = run_dir / "checkpoints" / "last" / "training_state.pt"
+    state = torch.load(state_file, weights_only=False)
+    assert 0 < state["elapsed_s"] <= summary["wall_s"]
+    torch.save(state | {"elapsed_s": 1000.0}, state_file)  # as if the first sitting had taken 1000 s
     out = run([BIN / "murm", "train", "--config", config, "--steps=8"], cwd=tmp_path)
     assert "resuming from step 6" in out
     with (run_dir / "log.csv").open() as f:
         assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]
+    assert json.loads((run_dir / "final_eval.json").read_text())["wall_s"] > 1000  # every sitting counts
 
     overall = lerobot_eval(Path(summary["checkpoint"]), tmp_path / "eval")
     assert overall["n_episodes"] == 2

@@ -156,7 +156,9 @@ def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, devi
         "experiment": config.name, "task": task, "cell": cell.label, "method": cell.method, "cameras": cell.cameras,
         "seed": seed, "dataset": root.name, "steps": summary["steps"], "final": summary["final"],
         "epsilon": json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"],
-        "eval_seeds": summary["eval_seeds"], "wall_s": round(time.perf_counter() - start, 1),
+        "eval_seeds": summary["eval_seeds"],
+        # the training run's own wall time over all its sittings (older runs: this call's)
+        "wall_s": summary.get("wall_s", round(time.perf_counter() - start, 1)),
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
         "hardware": hardware(), "curve": _read_curve(out / "eval.csv"), "recipe": recipe,
     }

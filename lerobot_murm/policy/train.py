@@ -127,7 +127,8 @@ def _truncate_csv(path: Path, step: int) -> None:
             _append_csv(path, columns, [r for r in rows if int(r["step"]) <= step])
 
 
-def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, generator: torch.Generator) -> None:
+def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, generator: torch.Generator,
+                    elapsed_s: float = 0.0) -> None:
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     pretrained = tmp / "pretrained_model"
@@ -141,6 +142,7 @@ def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, gene
         "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(),
         "policy": policy.state_dict(),
+        "elapsed_s": elapsed_s,  # wall time of all sittings so far, so a resumed run reports its whole time
     }
     torch.save(state, tmp / "training_state.pt")
     if folder.exists():  # swap, so that a crash leaves one complete checkpoint
@@ -153,6 +155,7 @@ def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, gene
 
 
 def train(config: TrainConfig) -> dict:
+    started = time.perf_counter()
     device = resolve_device(config.device)
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -175,14 +178,14 @@ def train(config: TrainConfig) -> dict:
     optimizer = policy_config.get_optimizer_preset().build(policy.get_optim_params())
 
     last = out / "checkpoints" / "last"
-    step = 0
+    step, earlier_s = 0, 0.0
     if (last / "training_state.pt").exists():
         state = torch.load(last / "training_state.pt", map_location=device, weights_only=False)
         policy.load_state_dict(state["policy"])
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
-        step = state["step"]
+        step, earlier_s = state["step"], state.get("elapsed_s", 0.0)
         for name in ("log.csv", "eval.csv"):
             _truncate_csv(out / name, step)
         print(f"resuming from step {step} ({last})")
@@ -190,6 +193,9 @@ def train(config: TrainConfig) -> dict:
         for name in ("log.csv", "eval.csv"):
             (out / name).unlink(missing_ok=True)
     draccus.dump(config, (out / "train_config.yaml").open("w"))
+
+    def elapsed() -> float:
+        return earlier_s + time.perf_counter() - started
 
     seeds = evaluation_seeds(config.eval_episodes, config.eval_seed)
     image_size = policy_config.encoder_config(policy_config.cameras[0]).image_size
@@ -226,11 +232,11 @@ def train(config: TrainConfig) -> dict:
                 rows = run_evaluation(step, seeds)
                 _append_csv(out / "eval.csv", EVAL_COLUMNS, rows)
                 progress.set_postfix(success=f"{rows[0]['success_rate']:.2f}")
-                save_checkpoint(last, policy, optimizer, step, generator)
+                save_checkpoint(last, policy, optimizer, step, generator, elapsed())
                 plot_learning_curve(out)
                 window_start = time.perf_counter()
         progress.close()
-        save_checkpoint(last, policy, optimizer, step, generator)
+        save_checkpoint(last, policy, optimizer, step, generator, elapsed())
         if step < config.steps:
             raise TrainingInterrupted(f"stopped at step {step}; run the same command again to resume")
         final_seeds = evaluation_seeds(config.final_eval_episodes, config.eval_seed)
@@ -246,6 +252,7 @@ def train(config: TrainConfig) -> dict:
         "eval_seeds": [final_seeds[0], final_seeds[-1]],
         "final": final,
         "checkpoint": str(last / "pretrained_model"),
+        "wall_s": round(elapsed(), 1),
     }
     (out / "final_eval.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

@@ -189,3 +189,17 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert "STALE TABLE" not in text and "| single-top | 0% | - (18.8) | - (38.6) | 50 ± 0 (0.2) |" in text
     assert "| single-global | 0% | - (34.5) | - (46.6) | 50 ± 0 (15.7) |" in text
     assert "kept" in text and text.endswith("end\n")
+
+
+def test_the_table5_section_gives_time_per_update_relative_to_the_single_view_baseline():
+    from lerobot_murm.experiments.paper import TABLE5
+    from lerobot_murm.experiments.report import time_table
+
+    rows = [{"task": "place_in_box", "cell": cell, "mask_p": "0.0", "train_steps_per_s": sps}
+            for cell, sps in (("single-global", "100.0"), ("separated_q-global+adjacent", "50.0"))]
+    rows.append({"task": "place_in_box", "cell": "separated_q-global+adjacent", "mask_p": "0.5",
+                 "train_steps_per_s": "50.0"})
+    table = time_table(rows, TABLE5)
+    assert "| place_in_box | single-global | 100.0 | 1.00 | 1.00 |" in table
+    assert "| place_in_box | separated_q-global+adjacent | 50.0 | 2.00 | 1.55 |" in table
+    assert table.count("separated_q") == 1  # one row per cell, masking levels aside

@@ -11,7 +11,7 @@ import re
 from pathlib import Path
 
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
-from lerobot_murm.experiments.paper import PAPER_TABLES, TASKS
+from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE5, TASKS
 from lerobot_murm.experiments.results import grid_results, write_tables
 
 
@@ -36,6 +36,22 @@ def comparison(name: str, rows: list[dict]) -> str:
             paper_text = "" if value is None else f"{value:.1f}"
             cells += [ours_text, paper_text]
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def time_table(rows: list[dict], paper: dict[str, float]) -> str:
+    """Table 5: each cell's time per update relative to the task's first cell (the
+    single-view baseline), from the runs' median training steps/s (evaluation excluded)."""
+    unmasked = [r for r in rows if float(r["mask_p"]) == 0.0]
+    base = {}
+    for r in unmasked:
+        base.setdefault(r["task"], float(r["train_steps_per_s"]))
+    lines = ["| task | cell | training steps/s | time per update vs. first cell | paper |", "|---|---|---:|---:|---:|"]
+    for r in unmasked:
+        ratio = base[r["task"]] / float(r["train_steps_per_s"])
+        value = paper.get(r["cell"])
+        lines.append(f"| {r['task']} | {r['cell']} | {float(r['train_steps_per_s']):.1f} | {ratio:.2f} | "
+                     f"{'' if value is None else f'{value:.2f}'} |")
     return "\n".join(lines) + "\n"
 
 
@@ -73,6 +89,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level; the paper's "
             f"value beside ours. Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows)
+            + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
             + "Runs:\n\n" + run_list(results)

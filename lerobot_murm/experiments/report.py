@@ -113,7 +113,8 @@ def compact_table(name: str, rows: list[dict]) -> str:
             texts.append(text if value is None else f"{text} ({value:.1f})")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")
     count = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]} to {seeds[-1]}"
-    note = f"Each value averages {count} training seed{'s' if seeds[-1] > 1 else ''} (std over them); the paper's value in brackets."
+    plural = "s" if seeds[-1] > 1 else ""
+    note = f"Each value averages {count} training seed{plural} (std over them); the paper's value in brackets."
     return "\n".join(lines) + f"\n\n{note}\n"
 
 

@@ -20,21 +20,29 @@ def _rows(table_csv: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+def _row_keys(rows: list[dict]) -> list[tuple[str, float]]:
+    """The (cell, masking) rows of a grid's table, in its order."""
+    return list(dict.fromkeys((r["cell"], float(r["mask_p"])) for r in rows))
+
+
+def _per_task(name: str, rows: list[dict], cell: str, mask_p: float) -> list[tuple[dict | None, float | None]]:
+    """For each task: our table row (None: not run yet) and the paper's value (None: none)."""
+    ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
+    paper = PAPER_TABLES.get(name, {}).get((cell, mask_p), (None,) * len(TASKS))
+    return [(ours.get((cell, mask_p, task)), paper[i]) for i, task in enumerate(TASKS)]
+
+
 def comparison(name: str, rows: list[dict]) -> str:
     """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet."""
     paper = PAPER_TABLES.get(name, {})
-    ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
-    keys = list(paper) + [k for k in dict.fromkeys((r["cell"], float(r["mask_p"])) for r in rows) if k not in paper]
+    keys = list(paper) + [k for k in _row_keys(rows) if k not in paper]
     lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" for t in TASKS) + " |",
              "|---|---:|" + "---:|---:|" * len(TASKS)]
     for cell, mask_p in keys:
         cells = []
-        for i, task in enumerate(TASKS):
-            r = ours.get((cell, mask_p, task))
+        for r, value in _per_task(name, rows, cell, mask_p):
             ours_text = f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-"
-            value = paper.get((cell, mask_p), (None,) * len(TASKS))[i]
-            paper_text = "" if value is None else f"{value:.1f}"
-            cells += [ours_text, paper_text]
+            cells += [ours_text, "" if value is None else f"{value:.1f}"]
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -100,16 +108,12 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
 
 def compact_table(name: str, rows: list[dict]) -> str:
     """Mean ± std over seeds per (cell, masking) and task, the paper's value in brackets."""
-    paper = PAPER_TABLES.get(name, {})
-    ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
     seeds = sorted({int(r["seeds"]) for r in rows})
     lines = [f"| cell | masking | {' | '.join(TASKS)} |", "|---|---:|" + "---:|" * len(TASKS)]
-    for cell, mask_p in dict.fromkeys((r["cell"], float(r["mask_p"])) for r in rows):
+    for cell, mask_p in _row_keys(rows):
         texts = []
-        for i, task in enumerate(TASKS):
-            r = ours.get((cell, mask_p, task))
+        for r, value in _per_task(name, rows, cell, mask_p):
             text = "-" if r is None else f"{float(r['success_mean']):.0f} ± {float(r['success_std']):.0f}"
-            value = paper.get((cell, mask_p), (None,) * len(TASKS))[i]
             texts.append(text if value is None else f"{text} ({value:.1f})")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")
     count = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]} to {seeds[-1]}"

@@ -143,10 +143,7 @@ def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, devi
     recipe = run_recipe(config, task, cell, seed)
     reused = finished_elsewhere(config, recipe, list(cell.eval_mask_p))
     if reused is not None:
-        result = reused | {"experiment": config.name, "cell": cell.label}
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(result, indent=1) + "\n")
-        return result
+        return _store(path, reused | {"experiment": config.name, "cell": cell.label})
     root = ensure_dataset(config, task, cell)
     encoders = ensure_encoders(config, root, cell.cameras, device)
     start = time.perf_counter()
@@ -162,6 +159,10 @@ def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, devi
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
         "hardware": hardware(), "curve": _read_curve(out / "eval.csv"), "recipe": recipe,
     }
+    return _store(path, result)
+
+
+def _store(path: Path, result: dict) -> dict:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1) + "\n")
     return result

@@ -128,7 +128,7 @@ def _truncate_csv(path: Path, step: int) -> None:
 
 
 def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, generator: torch.Generator,
-                    elapsed_s: float = 0.0) -> None:
+                    elapsed_s: float) -> None:
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     pretrained = tmp / "pretrained_model"

@@ -177,6 +177,7 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert "| single-top | 0% |" in table and "50.0 ± 0.0 (n=1)" in table
     assert rest.index("Top beats nothing here.") < rest.index("Runs:")
     assert "6.0 min (the run of table4/pick_up__single-global__seed0)" in rest
+    assert "Machine time of the runs this grid trained (1): 0.1 h." in rest
     assert (grid / "table.csv").exists() and (grid / "curves.png").exists()
 
     from lerobot_murm.experiments.report import update_readme

@@ -64,15 +64,20 @@ def time_table(rows: list[dict], paper: dict[str, float]) -> str:
 
 
 def run_list(results: Path) -> str:
+    """One line per run, then the machine time the grid itself spent (reused runs were paid
+    for by the grid that trained them)."""
     lines = ["| task | cell | seed | steps | final success (masking: %) | wall | train steps/s | hardware |",
              "|---|---|---:|---:|---|---:|---:|---|"]
+    trained, seconds = 0, 0.0
     for path in sorted((results / "runs").glob("*.json")):
         r = json.loads(path.read_text())
+        if "reused_from" not in r:
+            trained, seconds = trained + 1, seconds + r["wall_s"]
         finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in r["final"])
         wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
         lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
                      f"{wall} | {r['train_steps_per_s']} | {r['hardware']} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + f"\n\nMachine time of the runs this grid trained ({trained}): {seconds / 3600:.1f} h.\n"
 
 
 def refresh_tables(results: Path) -> None:

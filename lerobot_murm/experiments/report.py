@@ -25,22 +25,24 @@ def _row_keys(rows: list[dict]) -> list[tuple[str, float]]:
     return list(dict.fromkeys((r["cell"], float(r["mask_p"])) for r in rows))
 
 
-def _per_task(name: str, rows: list[dict], cell: str, mask_p: float) -> list[tuple[dict | None, float | None]]:
-    """For each task: our table row (None: not run yet) and the paper's value (None: none)."""
+def _per_task(name: str, rows: list[dict]) -> dict[tuple[str, float], list[tuple[dict | None, float | None]]]:
+    """Per (cell, masking) row, the paper's rows first: for each task our table row (None:
+    not run yet) and the paper's value (None: none)."""
     ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
-    paper = PAPER_TABLES.get(name, {}).get((cell, mask_p), (None,) * len(TASKS))
-    return [(ours.get((cell, mask_p, task)), paper[i]) for i, task in enumerate(TASKS)]
+    paper = PAPER_TABLES.get(name, {})
+    keys = list(paper) + [k for k in _row_keys(rows) if k not in paper]
+    return {(cell, mask_p): [(ours.get((cell, mask_p, task)), paper.get((cell, mask_p), (None,) * len(TASKS))[i])
+                             for i, task in enumerate(TASKS)]
+            for cell, mask_p in keys}
 
 
 def comparison(name: str, rows: list[dict]) -> str:
     """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet."""
-    paper = PAPER_TABLES.get(name, {})
-    keys = list(paper) + [k for k in _row_keys(rows) if k not in paper]
     lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" for t in TASKS) + " |",
              "|---|---:|" + "---:|---:|" * len(TASKS)]
-    for cell, mask_p in keys:
+    for (cell, mask_p), per_task in _per_task(name, rows).items():
         cells = []
-        for r, value in _per_task(name, rows, cell, mask_p):
+        for r, value in per_task:
             ours_text = f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-"
             cells += [ours_text, "" if value is None else f"{value:.1f}"]
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
@@ -115,9 +117,10 @@ def compact_table(name: str, rows: list[dict]) -> str:
     """Mean ± std over seeds per (cell, masking) and task, the paper's value in brackets."""
     seeds = sorted({int(r["seeds"]) for r in rows})
     lines = [f"| cell | masking | {' | '.join(TASKS)} |", "|---|---:|" + "---:|" * len(TASKS)]
+    per_task = _per_task(name, rows)
     for cell, mask_p in _row_keys(rows):
         texts = []
-        for r, value in _per_task(name, rows, cell, mask_p):
+        for r, value in per_task[cell, mask_p]:
             text = "-" if r is None else f"{float(r['success_mean']):.0f} ± {float(r['success_std']):.0f}"
             texts.append(text if value is None else f"{text} ({value:.1f})")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")

@@ -1,6 +1,19 @@
+import atexit
+import os
+import shutil
+import tempfile
+
 import pytest
 
-from lerobot_murm.env import MurmEnv
+# LeRobotDataset reads parquet through `datasets`, which keeps an Arrow copy of every new
+# dataset root in ~/.cache/huggingface/datasets. The suite makes dozens of temporary roots,
+# so that cache grew by gigabytes per run; point it (for the subprocesses too) at a folder
+# removed at exit. Set before anything imports `datasets`, which reads it once.
+_DATASETS_CACHE = tempfile.mkdtemp(prefix="murm-tests-datasets-cache-")
+os.environ["HF_DATASETS_CACHE"] = _DATASETS_CACHE
+atexit.register(shutil.rmtree, _DATASETS_CACHE, ignore_errors=True)
+
+from lerobot_murm.env import MurmEnv  # noqa: E402
 
 
 @pytest.fixture

@@ -4,8 +4,10 @@ the simulator, `murm train` with resume, and `lerobot-eval` on either one's chec
 import csv
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -96,3 +98,37 @@ policy:
 
     overall = lerobot_eval(Path(summary["checkpoint"]), tmp_path / "eval")
     assert overall["n_episodes"] == 2
+
+
+def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoint(tiny_pipeline, tmp_path):
+    """Ctrl-C in a terminal or `pkill -f murm` signal the simulator workers as well as the trainer."""
+    root, encoders = tiny_pipeline
+    config = tmp_path / "long.yaml"
+    config.write_text(f"""
+dataset: {root}
+task: place_in_box
+output_dir: {tmp_path / 'run'}
+cache_dir: {tmp_path / 'cache'}
+steps: 1000000
+batch_size: 8
+log_every: 2
+eval_every: 1000000
+eval_envs: 2
+policy:
+  type: murm
+  method: concat
+  cameras: [global, adjacent]
+  encoder_dir: {encoders}
+""")
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    trainer = subprocess.Popen([str(BIN / "murm"), "train", "--config", str(config)], cwd=tmp_path, env=env,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    log = tmp_path / "run" / "log.csv"
+    while not log.exists() and trainer.poll() is None:  # the workers exist before the first logged step
+        time.sleep(0.2)
+    os.killpg(trainer.pid, signal.SIGTERM)
+    _, stderr = trainer.communicate(timeout=300)
+    assert trainer.returncode == 1 and "stopped at step" in stderr, stderr[-3000:]
+    assert "BrokenPipeError" not in stderr and "EOFError" not in stderr, stderr[-3000:]
+    state = torch.load(tmp_path / "run" / "checkpoints" / "last" / "training_state.pt", weights_only=False)
+    assert state["step"] >= 2

@@ -8,8 +8,10 @@ evaluation and `lerobot-eval` mask identically. The simulators run in worker pro
 
 from __future__ import annotations
 
+import signal
 import time
 from dataclasses import dataclass, field
+from functools import partial
 
 import gymnasium as gym
 import numpy as np
@@ -38,6 +40,15 @@ def evaluation_seeds(episodes: int, first_seed: int = 100_000) -> list[int]:
     return list(range(first_seed, first_seed + episodes))
 
 
+def _make_worker_env(env_id: str, kwargs: dict) -> gym.Env:
+    """A simulator worker leaves a stop to the trainer. Ctrl-C reaches the terminal's whole
+    process group and `pkill -f murm` matches the forked workers too; a worker that died of
+    it would break the trainer's pipes before the trainer could save its checkpoint."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    return gym.make(env_id, **kwargs)
+
+
 class Evaluator:
     """Keeps `num_envs` simulator processes alive between evaluations."""
 
@@ -47,7 +58,7 @@ class Evaluator:
         self.task, self.cameras, self.num_envs = task, list(cameras), num_envs
         kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
         self.envs = gym.vector.AsyncVectorEnv(
-            [lambda: gym.make(GYM_IDS[task], **kwargs) for _ in range(num_envs)], context="fork"
+            [partial(_make_worker_env, GYM_IDS[task], kwargs) for _ in range(num_envs)], context="fork"
         )
 
     def close(self) -> None:

@@ -204,3 +204,14 @@ def test_the_table5_section_gives_time_per_update_relative_to_the_single_view_ba
     assert "| place_in_box | single-global | 100.0 | 1.00 | 1.00 |" in table
     assert "| place_in_box | separated_q-global+adjacent | 50.0 | 2.00 | 1.55 |" in table
     assert table.count("separated_q") == 1  # one row per cell, masking levels aside
+
+
+def test_a_grid_without_a_paper_table_gets_no_paper_columns():
+    from lerobot_murm.experiments.report import comparison
+
+    rows = [{"task": "pick_up", "cell": "single-global", "mask_p": "0.0", "success_mean": "56.0", "success_std": "0.0",
+             "seeds": "1"}]
+    ours = comparison("updates", rows)
+    assert ours.splitlines()[0] == "| cell | masking | place_in_box | place_in_random_box | pick_up |"
+    assert "| single-global | 0% | - | - | 56.0 ± 0.0 (n=1) |" in ours
+    assert "pick_up: ours | paper" in comparison("table3", rows)

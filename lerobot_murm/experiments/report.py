@@ -37,14 +37,17 @@ def _per_task(name: str, rows: list[dict]) -> dict[tuple[str, float], list[tuple
 
 
 def comparison(name: str, rows: list[dict]) -> str:
-    """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet."""
-    lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" for t in TASKS) + " |",
-             "|---|---:|" + "---:|---:|" * len(TASKS)]
+    """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet. A
+    grid of our own (no paper table) has no paper columns."""
+    with_paper = name in PAPER_TABLES
+    lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" if with_paper else t for t in TASKS) + " |",
+             "|---|---:|" + ("---:|---:|" if with_paper else "---:|") * len(TASKS)]
     for (cell, mask_p), per_task in _per_task(name, rows).items():
         cells = []
         for r, value in per_task:
-            ours_text = f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-"
-            cells += [ours_text, "" if value is None else f"{value:.1f}"]
+            cells.append(f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-")
+            if with_paper:
+                cells.append("" if value is None else f"{value:.1f}")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -99,10 +102,11 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             continue
         rows = _rows(results / "table.csv")
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
+        beside = "; the paper's value beside ours" if results.name in PAPER_TABLES else ""
         sections.append(
             f"## {results.name}\n\nSuccess rate (%), mean ± std over training seeds (n = seeds finished), "
-            f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level; the paper's "
-            f"value beside ours. Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
+            f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level{beside}. "
+            f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows)
             + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 BIN = Path(sys.executable).parent
 CAMERAS = "[global,adjacent]"
@@ -33,6 +34,17 @@ def lerobot_eval(checkpoint: Path, out: Path, *extra: str) -> dict:
     return json.loads((out / "eval_info.json").read_text())["overall"]
 
 
+def train_config(tiny_pipeline, tmp_path: Path, method: str, **fields) -> Path:
+    """A `murm train` YAML on the tiny pipeline, writing under tmp_path/run."""
+    root, encoders = tiny_pipeline
+    policy = {"type": "murm", "method": method, "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
+    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
+              "cache_dir": str(tmp_path / "cache"), **fields, "policy": policy}
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
 def test_lerobot_train_evaluates_in_the_simulator_and_lerobot_eval_loads_its_checkpoint(tiny_pipeline, tmp_path):
     root, encoders = tiny_pipeline
     log = run([
@@ -51,27 +63,8 @@ def test_lerobot_train_evaluates_in_the_simulator_and_lerobot_eval_loads_its_che
 
 
 def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resumes(tiny_pipeline, tmp_path):
-    root, encoders = tiny_pipeline
-    config = tmp_path / "tiny.yaml"
-    config.write_text(f"""
-dataset: {root}
-task: place_in_box
-output_dir: {tmp_path / 'run'}
-cache_dir: {tmp_path / 'cache'}
-steps: 6
-batch_size: 32
-log_every: 2
-eval_every: 3
-eval_episodes: 1
-final_eval_episodes: 2
-eval_mask_p: [0.0, 0.5]
-eval_envs: 1
-policy:
-  type: murm
-  method: separated_q
-  cameras: [global, adjacent]
-  encoder_dir: {encoders}
-""")
+    config = train_config(tiny_pipeline, tmp_path, "separated_q", steps=6, batch_size=32, log_every=2, eval_every=3,
+                          eval_episodes=1, final_eval_episodes=2, eval_mask_p=[0.0, 0.5], eval_envs=1)
     out = run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     assert "masking 50%: success" in out
     run_dir = tmp_path / "run"
@@ -102,24 +95,8 @@ policy:
 
 def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoint(tiny_pipeline, tmp_path):
     """Ctrl-C in a terminal or `pkill -f murm` signal the simulator workers as well as the trainer."""
-    root, encoders = tiny_pipeline
-    config = tmp_path / "long.yaml"
-    config.write_text(f"""
-dataset: {root}
-task: place_in_box
-output_dir: {tmp_path / 'run'}
-cache_dir: {tmp_path / 'cache'}
-steps: 1000000
-batch_size: 8
-log_every: 2
-eval_every: 1000000
-eval_envs: 2
-policy:
-  type: murm
-  method: concat
-  cameras: [global, adjacent]
-  encoder_dir: {encoders}
-""")
+    config = train_config(tiny_pipeline, tmp_path, "concat", steps=1_000_000, batch_size=8, log_every=2,
+                          eval_every=1_000_000, eval_envs=2)
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     trainer = subprocess.Popen([str(BIN / "murm"), "train", "--config", str(config)], cwd=tmp_path, env=env,
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)

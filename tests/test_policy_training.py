@@ -109,3 +109,14 @@ def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoi
     assert "BrokenPipeError" not in stderr and "EOFError" not in stderr, stderr[-3000:]
     state = torch.load(tmp_path / "run" / "checkpoints" / "last" / "training_state.pt", weights_only=False)
     assert state["step"] >= 2
+
+
+def test_the_evaluator_leaves_the_callers_stop_signals_alone():
+    """Gymnasium builds one simulator in the calling process to read the spaces; only the
+    workers may ignore Ctrl-C and SIGTERM, or a later stop (encoder training) is lost."""
+    from lerobot_murm.policy.evaluate import Evaluator
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    with Evaluator("place_in_box", ["global"], image_size=16, num_envs=1):
+        pass
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before

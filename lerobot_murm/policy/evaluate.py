@@ -8,6 +8,7 @@ evaluation and `lerobot-eval` mask identically. The simulators run in worker pro
 
 from __future__ import annotations
 
+import multiprocessing
 import signal
 import time
 from dataclasses import dataclass, field
@@ -43,9 +44,12 @@ def evaluation_seeds(episodes: int, first_seed: int = 100_000) -> list[int]:
 def _make_worker_env(env_id: str, kwargs: dict) -> gym.Env:
     """A simulator worker leaves a stop to the trainer. Ctrl-C reaches the terminal's whole
     process group and `pkill -f murm` matches the forked workers too; a worker that died of
-    it would break the trainer's pipes before the trainer could save its checkpoint."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    it would break the trainer's pipes before the trainer could save its checkpoint.
+    Gymnasium also calls this once in the trainer itself, to read the spaces: that process
+    keeps its handlers."""
+    if multiprocessing.parent_process() is not None:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return gym.make(env_id, **kwargs)
 
 

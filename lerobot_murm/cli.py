@@ -65,6 +65,7 @@ def _pull(args: argparse.Namespace) -> None:
 def _train_vqvae(args: argparse.Namespace) -> None:
     from dataclasses import replace
 
+    from lerobot_murm.stopping import TrainingInterrupted
     from lerobot_murm.vqvae import VQVAEConfig
     from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.train import train_vqvae
@@ -72,7 +73,10 @@ def _train_vqvae(args: argparse.Namespace) -> None:
     repo_id, root = dataset_location(args.dataset)
     out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{args.camera}")
     config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
-    metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
+    try:
+        metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
+    except TrainingInterrupted as stop:
+        raise SystemExit(f"murm train-vqvae: {stop} (the encoder so far is saved in {out})") from None
     held = metrics["heldout"]
     print(
         f"{args.camera}: held-out PSNR {held['psnr_db']:.1f} dB (MSE {held['mse']:.5f}), codebook perplexity "
@@ -104,7 +108,8 @@ def _encode(args: argparse.Namespace) -> None:
 
 
 def _train(args: argparse.Namespace) -> None:
-    from lerobot_murm.policy.train import TrainingInterrupted, load_train_config, train
+    from lerobot_murm.policy.train import load_train_config, train
+    from lerobot_murm.stopping import TrainingInterrupted
 
     config = load_train_config(args.config, args.overrides)
     try:
@@ -119,8 +124,12 @@ def _train(args: argparse.Namespace) -> None:
 
 def _reproduce(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.reproduce import load_reproduce_config, reproduce
+    from lerobot_murm.stopping import TrainingInterrupted
 
-    out = reproduce(load_reproduce_config(args.config, args.overrides))
+    try:
+        out = reproduce(load_reproduce_config(args.config, args.overrides))
+    except TrainingInterrupted as stop:
+        raise SystemExit(f"murm reproduce: {stop}; finished cells are kept") from None
     print(f"tables and figures: {out}")
 
 

@@ -1,8 +1,10 @@
 """VQ-VAE: shapes, straight-through gradients, checkpoints, training output, the latent cache."""
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -157,3 +159,33 @@ def test_the_cli_trains_and_encodes(dataset_root, tmp_path):
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert (tmp_path / "c" / "epsilon.json").exists() and (tmp_path / "c" / "latent_distances.png").exists()
+
+
+def test_a_stopped_training_resumes_to_the_same_encoder_as_an_unbroken_one(dataset_root, tmp_path):
+    steps = 600  # a resume state is written every 250 steps; the stop comes after the first
+    out = tmp_path / "stopped"
+    command = [str(MURM), "train-vqvae", "--dataset", str(dataset_root), "--camera", "global", "--steps", str(steps),
+               "--batch-size", "8", "--device", "cpu", "--out", str(out)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not (out / "training_state.pt").exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 1, stderr[-2000:]
+    assert "run the same command again to resume" in stderr
+    stopped = json.loads((out / "metrics.json").read_text())
+    assert stopped["interrupted"] and 250 <= stopped["steps"] < steps
+    assert VQVAE.load(out).config.steps == steps  # the encoder so far is usable
+
+    resumed = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert f"resuming from step {stopped['steps']}" in resumed.stdout
+    finished = json.loads((out / "metrics.json").read_text())
+    assert not finished["interrupted"] and finished["steps"] == steps
+    assert not (out / "training_state.pt").exists()
+
+    unbroken = tmp_path / "unbroken"
+    train_vqvae(REPO, dataset_root, "global", unbroken, replace(VQVAEConfig(), steps=steps, batch_size=8), device="cpu")
+    for name, tensor in VQVAE.load(unbroken).state_dict().items():
+        assert torch.equal(tensor, VQVAE.load(out).state_dict()[name]), name

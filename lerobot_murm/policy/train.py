@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import json
 import shutil
-import signal
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +35,7 @@ from lerobot_murm.policy.learning_curve import plot_learning_curve
 from lerobot_murm.policy.modeling_murm import ACTION, DONE, NEXT_STATE, REWARD, STATE, MurmPolicy
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
 from lerobot_murm.policy.replay import LatentReplay
+from lerobot_murm.stopping import StopRequest, TrainingInterrupted
 from lerobot_murm.vqvae.frames import dataset_location, open_dataset
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 
@@ -83,28 +83,6 @@ def build_policy(config: MurmConfig, dataset, device: torch.device) -> MurmPolic
 def transition_batch(replay: LatentReplay, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
     b = replay.sample(batch_size, generator)
     return {STATE: b.state, NEXT_STATE: b.next_state, ACTION: b.action, REWARD: b.reward, DONE: b.done}
-
-
-class TrainingInterrupted(RuntimeError):
-    """Raised after a stop request, once the checkpoint to resume from is written."""
-
-
-class StopRequest:
-    """Ctrl-C / SIGTERM finish the current step, save a checkpoint, and stop."""
-
-    def __init__(self) -> None:
-        self.requested = False
-
-    def __enter__(self) -> StopRequest:
-        self._old = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)}
-        return self
-
-    def _handle(self, *_: object) -> None:
-        self.requested = True
-
-    def __exit__(self, *exc: object) -> None:
-        for s, handler in self._old.items():
-            signal.signal(s, handler)
 
 
 def _append_csv(path: Path, columns: list[str], rows: list[dict]) -> None:

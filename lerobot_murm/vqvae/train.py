@@ -9,8 +9,9 @@ the paper's Figure 4).
 from __future__ import annotations
 
 import json
+import os
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import matplotlib
@@ -22,11 +23,14 @@ import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from lerobot_murm.device import resolve_device  # noqa: E402
+from lerobot_murm.stopping import StopRequest, TrainingInterrupted  # noqa: E402
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig  # noqa: E402
 from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset  # noqa: E402
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE  # noqa: E402
 
 LOG_EVERY = 50
+CHECKPOINT_EVERY = 250  # steps between resume states (about 30 s of training on 2 cores)
+STATE_FILE = "training_state.pt"
 
 
 def split_episodes(frames: CameraFrames, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -90,10 +94,33 @@ def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: in
     plt.close(fig)
 
 
+def _save_state(path: Path, model: VQVAE, optimizer, schedule, rng: np.random.Generator, step: int,
+                elapsed_s: float) -> None:
+    """Everything a stopped run needs to continue exactly where it was (written atomically)."""
+    state = {
+        "step": step,
+        "config": asdict(model.config),
+        "model": model.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "schedule": schedule.state_dict(),
+        "rng": rng.bit_generator.state,
+        "torch_rng": torch.get_rng_state(),
+        "elapsed_s": elapsed_s,
+    }
+    torch.save(state, path.with_suffix(".tmp"))
+    os.replace(path.with_suffix(".tmp"), path)
+
+
 def train_vqvae(
     repo_id: str, root: Path | None, camera: str, out_dir: Path, config: VQVAEConfig | None = None, device: str = "auto"
 ) -> dict:
-    """Train, evaluate and save; returns the metrics. Ctrl-C stops early and still saves."""
+    """Train, evaluate and save; returns the metrics.
+
+    Ctrl-C / SIGTERM stop after the current step: the encoder so far is saved (marked
+    `interrupted` in metrics.json) with `training_state.pt`, and `TrainingInterrupted` is
+    raised; the same call later resumes from that state and ends with the same weights as
+    an uninterrupted run. The state is also written every CHECKPOINT_EVERY steps.
+    """
     device = resolve_device(device)
     dataset = open_dataset(repo_id, root)
     frames = load_camera_frames(dataset, camera)
@@ -110,37 +137,64 @@ def train_vqvae(
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.steps)
 
-    start, step, interrupted = time.perf_counter(), 0, False
-    progress = tqdm(range(config.steps), desc=f"vq-vae {camera}", unit="step")
-    try:
-        for step in progress:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    state_path = out_dir / STATE_FILE
+    done, earlier_s = 0, 0.0
+    if state_path.exists():
+        state = torch.load(state_path, map_location=device, weights_only=False)
+        if state["config"] == asdict(config):
+            model.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+            schedule.load_state_dict(state["schedule"])
+            rng.bit_generator.state = state["rng"]
+            torch.set_rng_state(state["torch_rng"])
+            done, earlier_s = state["step"], state["elapsed_s"]
+            print(f"vq-vae {camera}: resuming from step {done} ({state_path})")
+        else:
+            print(f"vq-vae {camera}: {state_path} is from other settings or data; starting afresh")
+    first, start = done, time.perf_counter()
+
+    def elapsed() -> float:
+        return earlier_s + time.perf_counter() - start
+
+    with StopRequest() as stop:
+        progress = tqdm(total=config.steps, initial=done, desc=f"vq-vae {camera}", unit="step")
+        while done < config.steps and not stop.requested:
             batch = torch.from_numpy(train_images[rng.integers(0, len(train_images), config.batch_size)]).to(device)
             out = model(batch)
             optimizer.zero_grad(set_to_none=True)
             out["loss"].backward()
             optimizer.step()
             schedule.step()
-            if step % LOG_EVERY == 0:
+            if done % LOG_EVERY == 0:
                 perplexity, dead = codebook_usage(out["indices"], config.codebook_size)
                 mse = out["recon_loss"].item()  # on the [-0.5, 0.5] range = MSE on [0, 1]
                 progress.set_postfix(mse=f"{mse:.5f}", psnr=f"{10 * np.log10(1 / mse):.1f}", ppl=f"{perplexity:.0f}", dead=dead)
-    except KeyboardInterrupt:
-        interrupted = True
-    elapsed = time.perf_counter() - start
-    progress.close()
+            done += 1
+            progress.update()
+            if done % CHECKPOINT_EVERY == 0 and done < config.steps:
+                _save_state(state_path, model, optimizer, schedule, rng, done, elapsed())
+        progress.close()
+    sitting_s = time.perf_counter() - start
+    interrupted = done < config.steps
+    if interrupted:
+        _save_state(state_path, model, optimizer, schedule, rng, done, elapsed())
 
-    out_dir = Path(out_dir)
     model.save(out_dir)
     metrics = {
         "camera": camera,
-        "steps": step + 1,
+        "steps": done,
         "interrupted": interrupted,
-        "train_seconds": elapsed,
-        "train_images_per_s": (step + 1) * config.batch_size / elapsed,
+        "train_seconds": elapsed(),
+        "train_images_per_s": (done - first) * config.batch_size / sitting_s,
         "train_images": len(train_images),
         "heldout": evaluate(model, holdout if len(holdout) else train_images[:1024], device),
         "device": str(device),
     }
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     save_reconstructions(model.cpu(), holdout if len(holdout) else train_images, out_dir / "reconstructions.png")
+    if interrupted:
+        raise TrainingInterrupted(f"stopped at step {done} of {config.steps}; run the same command again to resume")
+    state_path.unlink(missing_ok=True)
     return metrics

@@ -25,24 +25,33 @@ def _row_keys(rows: list[dict]) -> list[tuple[str, float]]:
     return list(dict.fromkeys((r["cell"], float(r["mask_p"])) for r in rows))
 
 
-def _per_task(name: str, rows: list[dict]) -> dict[tuple[str, float], list[tuple[dict | None, float | None]]]:
+def grid_tasks(results: Path) -> tuple[str, ...]:
+    """The tasks a grid runs (its config.yaml), in the paper's order: its tables' columns."""
+    if not (results / "config.yaml").exists():
+        return TASKS
+    tasks = load_reproduce_config(results / "config.yaml").tasks
+    return tuple(t for t in TASKS if t in tasks)
+
+
+def _per_task(name: str, rows: list[dict], tasks: tuple[str, ...]
+              ) -> dict[tuple[str, float], list[tuple[dict | None, float | None]]]:
     """Per (cell, masking) row, the paper's rows first: for each task our table row (None:
     not run yet) and the paper's value (None: none)."""
     ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
     paper = PAPER_TABLES.get(name, {})
     keys = list(paper) + [k for k in _row_keys(rows) if k not in paper]
-    return {(cell, mask_p): [(ours.get((cell, mask_p, task)), paper.get((cell, mask_p), (None,) * len(TASKS))[i])
-                             for i, task in enumerate(TASKS)]
+    return {(cell, mask_p): [(ours.get((cell, mask_p, task)),
+                              paper.get((cell, mask_p), (None,) * len(TASKS))[TASKS.index(task)]) for task in tasks]
             for cell, mask_p in keys}
 
 
-def comparison(name: str, rows: list[dict]) -> str:
+def comparison(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -> str:
     """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet. A
     grid of our own (no paper table) has no paper columns."""
     with_paper = name in PAPER_TABLES
-    lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" if with_paper else t for t in TASKS) + " |",
-             "|---|---:|" + ("---:|---:|" if with_paper else "---:|") * len(TASKS)]
-    for (cell, mask_p), per_task in _per_task(name, rows).items():
+    lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" if with_paper else t for t in tasks) + " |",
+             "|---|---:|" + ("---:|---:|" if with_paper else "---:|") * len(tasks)]
+    for (cell, mask_p), per_task in _per_task(name, rows, tasks).items():
         cells = []
         for r, value in per_task:
             cells.append(f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-")
@@ -107,7 +116,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             f"## {results.name}\n\nSuccess rate (%), mean ± std over training seeds (n = seeds finished), "
             f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level{beside}. "
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
-            + comparison(results.name, rows)
+            + comparison(results.name, rows, grid_tasks(results))
             + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
@@ -117,11 +126,11 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
     return path
 
 
-def compact_table(name: str, rows: list[dict]) -> str:
+def compact_table(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -> str:
     """Mean ± std over seeds per (cell, masking) and task, the paper's value in brackets."""
     seeds = sorted({int(r["seeds"]) for r in rows})
-    lines = [f"| cell | masking | {' | '.join(TASKS)} |", "|---|---:|" + "---:|" * len(TASKS)]
-    per_task = _per_task(name, rows)
+    lines = [f"| cell | masking | {' | '.join(tasks)} |", "|---|---:|" + "---:|" * len(tasks)]
+    per_task = _per_task(name, rows, tasks)
     for cell, mask_p in _row_keys(rows):
         texts = []
         for r, value in per_task[cell, mask_p]:
@@ -141,11 +150,12 @@ def update_readme(results_dir: Path, readme: Path) -> list[str]:
 
     def refill(match: re.Match) -> str:
         name = match.group(1)
-        table = Path(results_dir) / name / "table.csv"
-        if not table.exists():
+        grid = Path(results_dir) / name
+        if not (grid / "table.csv").exists():
             return match.group(0)
         filled.append(name)
-        return f"<!-- results:{name} -->\n{compact_table(name, _rows(table))}<!-- /results:{name} -->"
+        table = compact_table(name, _rows(grid / "table.csv"), grid_tasks(grid))
+        return f"<!-- results:{name} -->\n{table}<!-- /results:{name} -->"
 
     text = re.sub(r"<!-- results:(\w+) -->.*?<!-- /results:\1 -->", refill, text, flags=re.S)
     readme.write_text(text)

@@ -76,9 +76,10 @@ def plot_curves(results: list[dict], path: Path) -> None:
             ax.fill_between(steps, values.min(0), values.max(0), color=color, alpha=0.15)
         ax.set(title=task, xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102))
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7, frameon=False)
-    fig.tight_layout(rect=(0, 0.06 + 0.035 * ((len(labels) + 2) // 3), 1, 1))
-    fig.savefig(path, dpi=110)
+    ncol = 3 if len(tasks) > 1 else 2  # one narrow panel: long labels in two columns
+    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
+    fig.tight_layout(rect=(0, 0.06 + 0.035 * -(-len(labels) // ncol), 1, 1))
+    fig.savefig(path, dpi=110, bbox_inches="tight")  # never crop a long legend label
     plt.close(fig)
 
 

@@ -166,12 +166,15 @@ def test_a_stopped_training_resumes_to_the_same_encoder_as_an_unbroken_one(datas
     out = tmp_path / "stopped"
     command = [str(MURM), "train-vqvae", "--dataset", str(dataset_root), "--camera", "global", "--steps", str(steps),
                "--batch-size", "8", "--device", "cpu", "--out", str(out)]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 240
-    while not (out / "training_state.pt").exists() and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    process.send_signal(signal.SIGTERM)
-    _, stderr = process.communicate(timeout=120)
+    log = tmp_path / "stderr.txt"  # a file, not an unread pipe that a slow run could fill and block on
+    with log.open("w") as stderr_file:
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=stderr_file)
+        deadline = time.monotonic() + 240
+        while not (out / "training_state.pt").exists() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=120)
+    stderr = log.read_text()
     assert process.returncode == 1, stderr[-2000:]
     assert "run the same command again to resume" in stderr
     stopped = json.loads((out / "metrics.json").read_text())
@@ -187,5 +190,6 @@ def test_a_stopped_training_resumes_to_the_same_encoder_as_an_unbroken_one(datas
 
     unbroken = tmp_path / "unbroken"
     train_vqvae(REPO, dataset_root, "global", unbroken, replace(VQVAEConfig(), steps=steps, batch_size=8), device="cpu")
+    resumed_weights = VQVAE.load(out).state_dict()
     for name, tensor in VQVAE.load(unbroken).state_dict().items():
-        assert torch.equal(tensor, VQVAE.load(out).state_dict()[name]), name
+        assert torch.equal(tensor, resumed_weights[name]), name

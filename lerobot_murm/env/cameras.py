@@ -58,8 +58,11 @@ CAMERAS: dict[str, FixedCamera | EndEffectorCamera] = {
     "adjacent": FixedCamera(eye=(0.82, 0.40, 0.42), target=(0.50, 0.03, 0.0)),
     # From the robot's right, low over the table: heights are easy to read.
     "side": FixedCamera(eye=(0.56, -0.58, 0.20), target=(0.56, 0.05, 0.03)),
-    # Straight down over the table, robot at the bottom of the image.
-    "top": FixedCamera(eye=(0.56, 0.03, 0.95), target=(0.56, 0.03, 0.0), up=(1.0, 0.0, 0.0)),
+    # Above the table, 0.64 m up and tilted 24 degrees from vertical towards the robot, which
+    # hangs in from the top of the image: the whole tray grid, the spawn strip and the hand,
+    # a 4 cm cube 2-3 pixels across. (It was straight down from 0.95 m: the cube was about
+    # one pixel and the arm hid it, so top-view policies failed on every task.)
+    "top": FixedCamera(eye=(0.80, 0.03, 0.64), target=(0.52, 0.03, 0.0), up=(-1.0, 0.0, 0.0)),
     # On the hand, 10 cm ahead of the fingers, looking down and back at the grasp.
     "active": EndEffectorCamera(eye_offset=(0.10, 0.0, 0.08), target_offset=(0.02, 0.0, -0.14)),
 }

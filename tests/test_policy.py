@@ -239,3 +239,68 @@ def test_latent_statistics_standardise_the_networks_inputs(policy):
     normalised = policy.normalize(state)
     assert normalised[:, :, 1:].mean().abs() < 0.01 and (normalised[:, :, 1:].std() - 1).abs() < 0.01
     assert normalised[:, 0, 0].abs().max() < 1e-5 and policy.latent_std[0, 0] == policy.config.latent_std_floor
+
+
+@pytest.mark.parametrize(("method", "cameras"), [("single", ["global"]), ("concat", ["global", "adjacent"]),
+                                                  ("separated_q", ["global", "adjacent"])])
+def test_widths_follow_the_papers_128_units_per_camera(tiny_pipeline, dataset, method, cameras):
+    """Paper 5.1: V, the policy and the single Q are 128 units per camera; each separated Q
+    head is 128 (4.3). width_per_camera=False keeps every network 128 wide."""
+
+    def widths(**overrides) -> tuple[int, int, int]:
+        config = make_config(tiny_pipeline[1], method=method, cameras=cameras, **overrides)
+        policy = build_policy(config, dataset, torch.device("cpu"))
+        return policy.value[0].out_features, policy.actor.mean[0].out_features, policy.critic.hidden
+
+    per_camera = 128 * len(cameras)
+    q_width = 128 if method == "separated_q" else per_camera
+    assert widths() == (per_camera, per_camera, q_width)
+    assert widths(width_per_camera=False) == (128, 128, 128)
+    assert widths(hidden_units=32) == (32 * len(cameras), 32 * len(cameras), 32 if method == "separated_q" else 32 * len(cameras))
+
+
+def test_separated_q_can_leave_a_dropped_cameras_q_out_of_the_mean(tiny_pipeline, dataset):
+    encoders = tiny_pipeline[1]
+    with pytest.raises(ValueError, match="unknown dropped_q 'ignored'"):
+        make_config(encoders, dropped_q="ignored")
+    with pytest.raises(ValueError, match="dropped_q 'excluded' needs separated_q with view_dropout"):
+        make_config(encoders, dropped_q="excluded")  # no view dropout
+    policy = build_policy(make_config(encoders, view_dropout=True, dropped_q="excluded"), dataset, torch.device("cpu"))
+    state = torch.randn(8, 2, 2 * policy.config.latent_dim)
+    action = torch.rand(8, policy.config.action_dim)
+    keep = torch.tensor([[True, False], [False, True]] * 4)
+    with torch.no_grad():
+        masked = policy.critic(state, action, keep)
+        first_only = policy.critic(state, action, torch.tensor([[True, False]] * 8))
+        second_only = policy.critic(state, action, torch.tensor([[False, True]] * 8))
+        mean = policy.critic(state, action)
+    torch.testing.assert_close(masked[:, 0::2], first_only[:, 0::2])
+    torch.testing.assert_close(masked[:, 1::2], second_only[:, 1::2])
+    torch.testing.assert_close(mean, (first_only + second_only) / 2)
+    transition = {"state": state, "next_state": state.roll(1, 0), "action": action,
+                  "reward": torch.zeros(8), "done": torch.zeros(8)}
+    loss, _ = policy.iql_loss(transition)
+    assert torch.isfinite(loss)
+
+
+def test_the_authors_masking_protocol_masks_one_camera_on_a_third_of_the_steps(tiny_pipeline, dataset, policy):
+    with pytest.raises(ValueError, match="unknown eval_mask_mode 'sometimes'"):
+        make_config(tiny_pipeline[1], eval_mask_mode="sometimes")
+    batch = observation(policy, batch=6000)
+    zeroed = (policy.state_from_observation(batch, mask_mode="authors") == 0).all(-1)  # (B, cameras)
+    assert zeroed.sum(-1).max() == 1  # at most one camera at a time
+    assert abs(zeroed.any(-1).float().mean().item() - 1 / 3) < 0.03
+    assert abs(zeroed[:, 0].float().mean().item() - 1 / 6) < 0.03  # the camera is drawn uniformly
+    policy.config.eval_mask_mode = "authors"
+    policy.mask_generator.manual_seed(0)
+    acted = policy.select_action(observation(policy, batch=64))
+    policy.mask_generator.manual_seed(0)
+    state = policy.state_from_observation(observation(policy, batch=64), mask_mode="authors")
+    torch.testing.assert_close(acted, policy.actor.act(state))
+
+
+def test_latent_standardisation_can_be_switched_off(tiny_pipeline, dataset):
+    policy = build_policy(make_config(tiny_pipeline[1], standardize_latents=False), dataset, torch.device("cpu"))
+    policy.fit_latent_statistics([torch.randn(100, policy.config.latent_dim) + 3 for _ in policy.cameras])
+    state = torch.randn(4, 2, 2 * policy.config.latent_dim)
+    torch.testing.assert_close(policy.normalize(state), state)

@@ -21,6 +21,8 @@ from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAECo
 
 METHODS = ("single", "concat", "dropout", "separated_q")
 DROPOUT_SCOPES = ("all", "actor")
+DROPPED_Q_MODES = ("zeros", "excluded")
+EVAL_MASK_MODES = ("paper", "authors")
 
 
 def image_feature_key(camera: str) -> str:
@@ -56,9 +58,9 @@ class MurmConfig(PreTrainedConfig):
     based): discount 0.995, expectile 0.9, weights clipped at 100, log-std in [-2, -1],
     policy weight decay 1e-4, values clipped to the range a sparse reward can reach.
     Where paper and code disagree, the paper wins and the code's value is a field:
-    128-unit layers (code: 256), 15 % future HER (code: more). One measured exception:
-    the code's inverse temperature 10 left separated-Q at 0 % success on place_in_box
-    after 5k steps; 3 reached 25 % and 1 reached 70 % (20 episodes each), so 1 it is.
+    128 units per camera (code: 256), 15 % future HER (code: more). The inverse
+    temperature and latent standardisation are chosen on validation seeds; REPORT.md
+    lists every hyperparameter with its source.
     """
 
     method: str = "separated_q"
@@ -75,11 +77,14 @@ class MurmConfig(PreTrainedConfig):
     max_advantage_weight: float = 100.0
     clip_value: bool = True  # V and TD targets within [-cameras / (1 - discount), 0]
     target_update_rate: float = 0.005  # Polyak tau
-    q_hidden: int = 128
+    # units per hidden layer (paper 4.3 and Table 1: 128; authors' code: 256)
+    hidden_units: int = 128
+    # paper 5.1, "FC layers with 128 neurons per viewpoint": V, the policy and the single Q of
+    # single/concat/dropout are hidden_units x cameras wide; each separated Q is hidden_units
+    # wide (paper 4.3). False: every network hidden_units wide whatever the cameras.
+    width_per_camera: bool = True
     q_layers: int = 2
-    v_hidden: int = 128
     v_layers: int = 2
-    policy_hidden: int = 128
     policy_layers: int = 4
     log_std_min: float = -2.0
     log_std_max: float = -1.0
@@ -87,6 +92,9 @@ class MurmConfig(PreTrainedConfig):
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4
     value_lr: float = 3e-4
+    # standardise each latent feature with the dataset's mean and std before the networks (not
+    # in the paper; the authors' code feeds raw latents)
+    standardize_latents: bool = True
     latent_std_floor: float = 0.05  # standardised inputs: std of a latent feature at least this
     her_ratio: float = 0.15  # future hindsight relabelling
     dropout_p: float = 0.5  # each camera pair zeroed with this probability in training
@@ -97,12 +105,20 @@ class MurmConfig(PreTrainedConfig):
     # "actor" (only the policy; V and Q see every camera, so the advantages that weight the
     # policy come from the full state while the policy learns to act with views missing)
     dropout_scope: str = "all"
+    # separated Q with view dropout on every network: "zeros" feeds a dropped camera's Q_k a
+    # zero pair, like the other networks; "excluded" leaves the dropped cameras' Q_k out of
+    # the mean (eq. 11 over the cameras that remain)
+    dropped_q: str = "zeros"
     # lerobot-train reads frames t, t+1 and these later frames as hindsight goal candidates
     # (the fast trainer draws any later frame of the episode)
     her_offsets: list[int] = field(default_factory=lambda: [2, 5, 10, 20, 50])
 
     # evaluation (Table 4): each step, each camera's image is dropped with this probability
     eval_mask_p: float = 0.0
+    # "paper": each camera masked with eval_mask_p at every step, never all (paper 5.2);
+    # "authors": the authors' public code, on a third of the steps one random camera masked
+    # (eval_mask_p unused)
+    eval_mask_mode: str = "paper"
     eval_mask_seed: int = 0
 
     normalization_mapping: dict[str, NormalizationMode] = field(
@@ -133,6 +149,15 @@ class MurmConfig(PreTrainedConfig):
             raise ValueError(f"view_dropout applies to 'dropout' and 'separated_q', not {self.method!r}")
         if self.dropout_scope not in DROPOUT_SCOPES:
             raise ValueError(f"unknown dropout_scope {self.dropout_scope!r}; choose one of {list(DROPOUT_SCOPES)}")
+        if self.dropped_q not in DROPPED_Q_MODES:
+            raise ValueError(f"unknown dropped_q {self.dropped_q!r}; choose one of {list(DROPPED_Q_MODES)}")
+        if self.dropped_q == "excluded" and not (self.method == "separated_q" and self.view_dropout
+                                                 and self.dropout_scope == "all"):
+            raise ValueError("dropped_q 'excluded' needs separated_q with view_dropout and dropout_scope 'all'")
+        if self.eval_mask_mode not in EVAL_MASK_MODES:
+            raise ValueError(f"unknown eval_mask_mode {self.eval_mask_mode!r}; choose one of {list(EVAL_MASK_MODES)}")
+        if self.hidden_units < 1:
+            raise ValueError(f"hidden_units must be at least 1, got {self.hidden_units}")
         if self.method == "dropout" and not self.view_dropout:
             raise ValueError("method 'dropout' always drops views; use 'concat' for none")
         if not self.encoders:
@@ -169,6 +194,11 @@ class MurmConfig(PreTrainedConfig):
     @property
     def latent_dim(self) -> int:
         return self.encoder_config(self.cameras[0]).latent_dim
+
+    @property
+    def shared_width(self) -> int:
+        """Units per layer of V, the policy and the single Q (paper 5.1: 128 per camera)."""
+        return self.hidden_units * (len(self.cameras) if self.width_per_camera else 1)
 
     @property
     def action_dim(self) -> int:

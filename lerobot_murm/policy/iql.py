@@ -10,7 +10,8 @@ them into a LeRobot policy and the fast trainer samples batches for them.
 - Q (eq. 7/10): TD regression towards r + gamma (1 - done) V(s').
 - policy (eq. 8): advantage-weighted log-likelihood, weights exp(beta A) clipped.
 - separated Q (eq. 11): one Q per camera on (z_k, zg_k, a), averaged.
-- dropout: whole (z_k, zg_k) pairs zeroed with probability p, never all cameras.
+- dropout: whole (z_k, zg_k) pairs zeroed with probability p, never all cameras; with
+  separated Q a dropped camera's Q_k may instead be left out of the mean.
 
 The policy is a Gaussian whose mean is squashed by tanh and whose log-std is a learned
 state-independent vector squashed into [log_std_min, log_std_max] by a sigmoid (a hard
@@ -93,15 +94,20 @@ class DoubleQ(nn.Module):
         self.body = nn.ModuleList(EnsembleLinear(2 * groups, hidden, hidden) for _ in range(layers - 1))
         self.out = EnsembleLinear(2 * groups, hidden, 1)
 
-    def forward(self, state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """state: (B, groups, group_dim). Returns (2, B): the two sets' averaged Q values."""
+    def forward(self, state: torch.Tensor, action: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
+        """state: (B, groups, group_dim); keep: optional (B, groups) bool, the heads each row
+        averages over (all when None). Returns (2, B): the two sets' averaged Q values."""
         batch = state.shape[0]
         x = torch.cat([state, action.unsqueeze(1).expand(-1, self.groups, -1)], dim=-1).transpose(0, 1)
         h = torch.relu(self.first(x))  # (groups, B, 2 * hidden): both sets at once
         h = h.view(self.groups, batch, 2, self.hidden).permute(2, 0, 1, 3).reshape(2 * self.groups, batch, self.hidden)
         for layer in self.body:
             h = torch.relu(layer(h))
-        return self.out(h).view(2, self.groups, batch).mean(1)
+        q = self.out(h).view(2, self.groups, batch)
+        if keep is None:
+            return q.mean(1)
+        weights = keep.t().to(q.dtype)  # (groups, B)
+        return (q * weights).sum(1) / weights.sum(0)
 
 
 class GaussianPolicy(nn.Module):

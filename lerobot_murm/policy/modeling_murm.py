@@ -61,13 +61,13 @@ class MurmPolicy(PreTrainedPolicy):
             groups=len(self.cameras) if separated else 1,
             group_dim=pair_dim if separated else state_dim,
             action_dim=action_dim,
-            hidden=config.q_hidden,
+            hidden=config.hidden_units if separated else config.shared_width,
             layers=config.q_layers,
         )
         self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
-        self.value = mlp(state_dim, config.v_hidden, config.v_layers, 1)
+        self.value = mlp(state_dim, config.shared_width, config.v_layers, 1)
         self.actor = GaussianPolicy(
-            state_dim, action_dim, config.policy_hidden, config.policy_layers, config.log_std_min, config.log_std_max
+            state_dim, action_dim, config.shared_width, config.policy_layers, config.log_std_min, config.log_std_max
         )
         self.mask_generator = torch.Generator().manual_seed(config.eval_mask_seed)
         if dataset_meta is not None:  # a fresh policy for lerobot-train: encoders and statistics from the data
@@ -76,7 +76,10 @@ class MurmPolicy(PreTrainedPolicy):
 
     def fit_latent_statistics(self, latents: list[Tensor]) -> None:
         """Per-feature mean and std of each camera's (N, latent_dim) latents; std floored so that
-        a code that almost never changes does not blow up when it does."""
+        a code that almost never changes does not blow up when it does. Without
+        `standardize_latents` the statistics stay 0 and 1 and the networks see raw latents."""
+        if not self.config.standardize_latents:
+            return
         for k, z in enumerate(latents):
             self.latent_mean[k] = z.mean(0)
             self.latent_std[k] = z.std(0).clamp(min=self.config.latent_std_floor)
@@ -133,9 +136,10 @@ class MurmPolicy(PreTrainedPolicy):
         flat = images.reshape(-1, *images.shape[-3:])
         return self.encoders[camera].encode(flat).view(*images.shape[:-3], -1)
 
-    def state_from_observation(self, batch: dict[str, Tensor], mask_p: float = 0.0) -> Tensor:
-        """(B, cameras, 2 * latent) standardised state of one observation, cameras masked with
-        mask_p (Table 4).
+    def state_from_observation(self, batch: dict[str, Tensor], mask_p: float = 0.0, mask_mode: str = "paper") -> Tensor:
+        """(B, cameras, 2 * latent) standardised state of one observation, cameras masked
+        (Table 4) by `mask_mode`: "paper", each camera with probability mask_p; "authors",
+        on a third of the steps one random camera (the authors' public code).
 
         Several cameras: a masked camera's (z, zg) pair is zeroed as in dropout training, and
         a step that would mask every camera masks none (the paper's rule). One camera: its
@@ -143,22 +147,35 @@ class MurmPolicy(PreTrainedPolicy):
         """
         images = {c: batch[image_feature_key(c)] for c in self.cameras}
         batch_size, device = images[self.cameras[0]].shape[0], images[self.cameras[0]].device
-        keep = torch.ones(batch_size, len(self.cameras), dtype=torch.bool)
-        if mask_p > 0 and len(self.cameras) == 1:
-            visible = torch.rand(batch_size, generator=self.mask_generator) >= mask_p
+        visible = self._evaluation_visibility(batch_size, mask_p, mask_mode)
+        keep = torch.ones_like(visible)
+        if len(self.cameras) == 1:
             images[self.cameras[0]] = images[self.cameras[0]] * visible.to(device).view(-1, 1, 1, 1)
-        elif mask_p > 0:
-            keep = camera_keep_mask(batch_size, len(self.cameras), mask_p, generator=self.mask_generator)
+        else:
+            keep = visible
         pairs = [
             torch.cat([self.encode(c, images[c]), self.encode(c, batch[goal_feature_key(c)])], dim=-1)
             for c in self.cameras
         ]
         return self.normalize(torch.stack(pairs, dim=1)) * keep.to(device).unsqueeze(-1)
 
+    def _evaluation_visibility(self, batch_size: int, mask_p: float, mask_mode: str) -> Tensor:
+        """(B, cameras) bool, True where a camera's image reaches the policy at this step."""
+        cameras = len(self.cameras)
+        if mask_mode == "authors":
+            masked = torch.rand(batch_size, generator=self.mask_generator) < 1 / 3
+            which = torch.randint(cameras, (batch_size,), generator=self.mask_generator)
+            return ~(torch.nn.functional.one_hot(which, cameras).bool() & masked.unsqueeze(1))
+        if mask_p == 0:
+            return torch.ones(batch_size, cameras, dtype=torch.bool)
+        if cameras == 1:
+            return (torch.rand(batch_size, generator=self.mask_generator) >= mask_p).unsqueeze(1)
+        return camera_keep_mask(batch_size, cameras, mask_p, generator=self.mask_generator)
+
     # --- acting ----------------------------------------------------------------------------
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
-        state = self.state_from_observation(batch, mask_p=self.config.eval_mask_p)
+        state = self.state_from_observation(batch, self.config.eval_mask_p, self.config.eval_mask_mode)
         return self.actor.act(state, deterministic=True).unsqueeze(1)
 
     @torch.no_grad()
@@ -201,15 +218,19 @@ class MurmPolicy(PreTrainedPolicy):
         c = self.config
         state, next_state = self.normalize(transition[STATE]), self.normalize(transition[NEXT_STATE])
         action = transition[ACTION]
-        actor_state = state
-        if c.view_dropout:  # the same cameras vanish from s_t and s_t+1
-            keep = camera_keep_mask(state.shape[0], state.shape[1], c.dropout_p, device=state.device).unsqueeze(-1)
-            actor_state = state * keep
-            if c.dropout_scope == "all":
-                state, next_state = actor_state, next_state * keep
+        actor_state, q_heads = state, None
         critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)
+        if c.view_dropout:  # the same cameras vanish from s_t and s_t+1
+            keep = camera_keep_mask(state.shape[0], state.shape[1], c.dropout_p, device=state.device)
+            actor_state = state * keep.unsqueeze(-1)
+            if c.dropout_scope == "all":
+                state, next_state = actor_state, next_state * keep.unsqueeze(-1)
+                if c.dropped_q == "excluded":  # each Q_k sees its own pair; dropped ones leave the mean
+                    q_heads = keep
+                else:
+                    critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)
         with torch.no_grad():
-            q_target = self.critic_target(critic_input, action).min(0).values
+            q_target = self.critic_target(critic_input, action, q_heads).min(0).values
             next_v = self.value(next_state.flatten(1)).squeeze(-1)
             td_target = transition[REWARD] + c.discount * (1.0 - transition[DONE]) * next_v
             if c.clip_value:  # a sparse reward in [-cameras, 0] bounds every return
@@ -217,7 +238,7 @@ class MurmPolicy(PreTrainedPolicy):
                 td_target = td_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
         v = self.value(state.flatten(1)).squeeze(-1)
         value_loss = expectile_loss(q_target - v, c.expectile)
-        q = self.critic(critic_input, action)
+        q = self.critic(critic_input, action, q_heads)
         critic_loss = (q - td_target).pow(2).mean(1).sum()  # both sets' MSE
         weights = advantage_weights(q_target - v, c.temperature, c.max_advantage_weight)
         log_prob = self.actor.distribution(actor_state).log_prob(action.clamp(-1.0, 1.0)).sum(-1)

@@ -71,10 +71,12 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
     for name in ("log.csv", "eval.csv", "learning_curve.png", "final_eval.json", "train_config.yaml"):
         assert (run_dir / name).exists(), name
     with (run_dir / "eval.csv").open() as f:
-        evals = [(int(r["step"]), float(r["mask_p"])) for r in csv.DictReader(f)]
-    assert evals == [(3, 0.0), (3, 0.5), (6, 0.0), (6, 0.5)]
+        evals = [(int(r["step"]), float(r["mask_p"]), r["split"]) for r in csv.DictReader(f)]
+    assert evals == [(3, 0.0, "validation"), (3, 0.5, "validation"), (6, 0.0, "validation"), (6, 0.5, "validation"),
+                     (6, 0.0, "test"), (6, 0.5, "test")]  # the learning curve on validation seeds, then the test
     summary = json.loads((run_dir / "final_eval.json").read_text())
     assert [r["episodes"] for r in summary["final"]] == [2, 2]
+    assert summary["validation_seeds"] == [200_000, 200_001] and summary["eval_seeds"] == [300_000, 300_001]
 
     # a finished run is not redone; a longer one resumes from the checkpoint
     assert "resuming" not in run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
@@ -120,3 +122,13 @@ def test_the_evaluator_leaves_the_callers_stop_signals_alone():
     with Evaluator("place_in_box", ["global"], image_size=16, num_envs=1):
         pass
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+def test_validation_and_test_seeds_must_be_disjoint(tiny_pipeline, tmp_path):
+    from lerobot_murm.policy.train import load_train_config
+
+    config = train_config(tiny_pipeline, tmp_path, "separated_q")
+    assert load_train_config(config).test_seed == 300_000
+    with pytest.raises(Exception) as error:  # draccus wraps the config's ValueError
+        load_train_config(config, ["--validation_seed=300050"])
+    assert "validation seeds 300050-300149 and test seeds 300000-300099 must be" in str(error.value.__cause__ or error.value)

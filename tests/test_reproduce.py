@@ -42,6 +42,11 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert runs == ["place_in_box__separated_q-global+adjacent__seed0.json", "place_in_box__single-global__seed0.json"]
     result = json.loads((results / "runs" / runs[0]).read_text())
     assert [r["episodes"] for r in result["final"]] == [2, 2] and result["steps"] == 20
+    validation, test = range(result["validation_seeds"][0], result["validation_seeds"][1] + 1), \
+        range(result["eval_seeds"][0], result["eval_seeds"][1] + 1)
+    assert len(test) == 2 and not set(validation) & set(test)
+    assert [r["episodes"] for r in result["final_validation"]] == [2, 2]
+    assert 0.0 <= result["demonstration_success"] <= 1.0
 
     stamp = {p: p.stat().st_mtime_ns for p in (results / "runs").iterdir()}
     again = murm(args, tmp_path)
@@ -86,7 +91,11 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
     final = [{"mask_p": p, "success_rate": 0.5, "episodes": 100} for p in (0.0, 0.1)]
     stored = {"final": final, "curve": [[5000, 0.0, 0.4], [5000, 0.1, 0.3]], "recipe": recipe}
     (tmp_path / "table4" / "runs").mkdir(parents=True)
-    (tmp_path / "table4" / "runs" / "pick_up__single-global__seed1.json").write_text(json.dumps(stored))
+    earlier_setting = tmp_path / "table4" / "runs" / "pick_up__single-global__seed1.json"
+    earlier_setting.write_text(json.dumps(stored))
+    assert finished_elsewhere(table3, recipe, [0.0]) is None  # no validation seeds: chosen on its test seeds
+    stored["validation_seeds"] = [200_000, 200_099]
+    earlier_setting.write_text(json.dumps(stored))
     found = finished_elsewhere(table3, recipe, [0.0])
     assert found["final"] == final[:1] and found["curve"] == [[5000, 0.0, 0.4]]
     assert found["reused_from"] == "table4/pick_up__single-global__seed1"
@@ -152,7 +161,7 @@ def test_the_smoke_single_view_cell_learns_a_policy_that_beats_random_actions(tm
     result = json.loads((tmp_path / "results/smoke/runs/place_in_box__single-global__seed0.json").read_text())
     learned = result["final"][0]
     assert learned["mask_p"] == 0.0
-    random = random_policy_success("place_in_box", evaluation_seeds(learned["episodes"]))
+    random = random_policy_success("place_in_box", evaluation_seeds(learned["episodes"], result["eval_seeds"][0]))
     assert learned["success_rate"] >= random + 0.15, (learned, random)
 
 

@@ -50,6 +50,7 @@ class CellSpec:
     cameras: list[str]
     label: str = ""  # default: method and cameras
     eval_mask_p: list[float] = field(default_factory=lambda: [0.0])
+    eval_authors_masking: bool = False  # also the authors' code's masking protocol (an extra row)
     epsilon: list[float] | None = None  # default: the suggestion of `murm encode`
     episodes: int | None = None  # demonstrations (Table 7); default: the collection's
     noisy_fraction: float | None = None  # share of noisy demonstrations (Table 7)

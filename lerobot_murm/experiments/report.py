@@ -113,8 +113,8 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
         beside = "; the paper's value beside ours" if results.name in PAPER_TABLES else ""
         sections.append(
-            f"## {results.name}\n\nSuccess rate (%), mean ± std over training seeds (n = seeds finished), "
-            f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level{beside}. "
+            f"## {results.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds "
+            f"(n = seeds finished), on test episodes only, {rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level{beside}. "
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
             + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
@@ -139,7 +139,7 @@ def compact_table(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")
     count = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]} to {seeds[-1]}"
     plural = "s" if seeds[-1] > 1 else ""
-    note = f"Each value averages {count} training seed{plural} (std over them); the paper's value in brackets."
+    note = f"Each value averages {count} training seed{plural} (sample std over them, ddof 1; test episodes); the paper's value in brackets."
     return "\n".join(lines) + f"\n\n{note}\n"
 
 

@@ -12,6 +12,7 @@ deterministically from their seeds.
 
 from __future__ import annotations
 
+import csv
 import json
 import platform
 import time
@@ -28,6 +29,7 @@ from lerobot_murm.env import CAMERA_NAMES
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.policy.learning_curve import validation_curve
 from lerobot_murm.policy.train import TrainConfig, train
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
@@ -100,6 +102,7 @@ def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, 
         cache_dir=str(Path(config.work_dir) / "latent_cache"), steps=t.steps, batch_size=t.batch_size, seed=seed,
         device=config.device, log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
         final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p), eval_envs=t.eval_envs,
+        eval_authors_masking=cell.eval_authors_masking,
     )
 
 
@@ -124,6 +127,8 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
         if path.parent.parent.name == config.name:
             continue
         result = json.loads(path.read_text())
+        if "validation_seeds" not in result:  # an earlier setting's run, chosen on its test seeds
+            continue
         if result.get("recipe") != recipe or not set(mask_ps) <= {r["mask_p"] for r in result["final"]}:
             continue
         return result | {
@@ -152,8 +157,10 @@ def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, devi
     result = {
         "experiment": config.name, "task": task, "cell": cell.label, "method": cell.method, "cameras": cell.cameras,
         "seed": seed, "dataset": root.name, "steps": summary["steps"], "final": summary["final"],
+        "final_validation": summary["final_validation"],
         "epsilon": json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"],
-        "eval_seeds": summary["eval_seeds"],
+        "validation_seeds": summary["validation_seeds"], "eval_seeds": summary["eval_seeds"],
+        "demonstration_success": _demonstration_success(root),
         # the training run's own wall time over all its sittings (older runs: this call's)
         "wall_s": summary.get("wall_s", round(time.perf_counter() - start, 1)),
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
@@ -169,8 +176,16 @@ def _store(path: Path, result: dict) -> dict:
 
 
 def _read_curve(path: Path) -> list[list[float]]:
-    lines = path.read_text().splitlines()[1:]
-    return [[float(x) for x in line.split(",")[:3]] for line in lines]  # step, mask_p, success_rate
+    """[step, mask_p, success_rate] of the validation evaluations (the learning curve)."""
+    with path.open() as f:
+        rows = validation_curve([{k: float(v) if k not in ("split", "mask_mode") else v for k, v in row.items()}
+                                 for row in csv.DictReader(f)])
+    return [[r["step"], r["mask_p"], r["success_rate"]] for r in rows]
+
+
+def _demonstration_success(root: Path) -> float:
+    """The share of the dataset's demonstrations that reached the goal (0-1)."""
+    return json.loads((root / "meta" / "murm_collection.json").read_text())["success_rate"]
 
 
 def _median_steps_per_s(path: Path) -> float:

@@ -26,7 +26,8 @@ def aggregate(results: list[dict]) -> list[dict]:
     groups: dict[tuple, list[tuple[dict, dict]]] = defaultdict(list)
     for result in results:
         for final in result["final"]:
-            groups[(result["task"], result["cell"], final["mask_p"])].append((result, final))
+            cell = result["cell"] + (", authors' masking" if final.get("mask_mode") == "authors" else "")
+            groups[(result["task"], cell, final["mask_p"])].append((result, final))
     rows = []
     for (task, cell, mask_p), members in groups.items():
         rates = np.array([100 * final["success_rate"] for _, final in members])
@@ -34,7 +35,7 @@ def aggregate(results: list[dict]) -> list[dict]:
         rows.append({
             "task": task, "cell": cell, "method": first["method"], "cameras": "+".join(first["cameras"]),
             "mask_p": mask_p, "success_mean": round(float(rates.mean()), 2),
-            "success_std": round(float(rates.std()), 2), "seeds": len(members),
+            "success_std": round(float(rates.std(ddof=1)) if len(rates) > 1 else 0.0, 2), "seeds": len(members),
             "episodes_per_seed": members[0][1]["episodes"], "steps": first["steps"],
             "wall_s_mean": round(float(np.mean([r["wall_s"] for r, _ in members])), 1),
             "train_steps_per_s": round(float(np.mean([r["train_steps_per_s"] for r, _ in members])), 1),

@@ -11,23 +11,30 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
-def _read(path: Path) -> list[dict[str, float]]:
+def _read(path: Path) -> list[dict[str, float | str]]:
+    """Rows of a run's CSV, numbers as floats (eval.csv's split and mask_mode stay text)."""
     if not path.exists():
         return []
     with path.open() as f:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        return [{k: v if k in ("split", "mask_mode") else float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def validation_curve(eval_rows: list[dict]) -> list[dict]:
+    """The learning curve: validation evaluations under the paper's masking (the test rows
+    are for reporting only and are never plotted against training)."""
+    return [r for r in eval_rows if r.get("split", "validation") == "validation" and r.get("mask_mode", "paper") == "paper"]
 
 
 def plot_learning_curve(run_dir: Path) -> Path:
     """Success rate per masking level over training steps, beside the three IQL losses."""
     run_dir = Path(run_dir)
-    evals, logs = _read(run_dir / "eval.csv"), _read(run_dir / "log.csv")
+    evals, logs = validation_curve(_read(run_dir / "eval.csv")), _read(run_dir / "log.csv")
     fig, (ax_success, ax_loss) = plt.subplots(1, 2, figsize=(10, 3.6))
     for mask_p in sorted({row["mask_p"] for row in evals}):
         rows = [r for r in evals if r["mask_p"] == mask_p]
         ax_success.plot([r["step"] for r in rows], [100 * r["success_rate"] for r in rows], marker="o",
                         label=f"masking {mask_p:.0%}")
-    ax_success.set(xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102), title="evaluation")
+    ax_success.set(xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102), title="validation episodes")
     if evals:
         ax_success.legend()
     for key in ("value_loss", "critic_loss", "actor_loss"):

@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from lerobot_murm.device import resolve_device
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.evaluate import Evaluator, evaluation_seeds
+from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
 from lerobot_murm.policy.learning_curve import plot_learning_curve
 from lerobot_murm.policy.modeling_murm import ACTION, DONE, NEXT_STATE, REWARD, STATE, MurmPolicy
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
@@ -40,7 +40,7 @@ from lerobot_murm.vqvae.frames import dataset_location, open_dataset
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 
 LOG_COLUMNS = ["step", "value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight", "steps_per_s"]
-EVAL_COLUMNS = ["step", "mask_p", "success_rate", "episodes", "seconds"]
+EVAL_COLUMNS = ["step", "mask_p", "success_rate", "episodes", "seconds", "split", "mask_mode"]
 
 
 @dataclass
@@ -56,17 +56,28 @@ class TrainConfig:
     device: str = "auto"
     log_every: int = 250
     eval_every: int = 5_000
-    eval_episodes: int = 20  # during training, for the learning curve
-    final_eval_episodes: int = 100
+    eval_episodes: int = 20  # validation episodes per learning-curve point during training
+    final_eval_episodes: int = 100  # at the end: this many validation and this many test episodes
     eval_mask_p: list[float] = field(default_factory=lambda: [0.0])  # masking levels evaluated
+    # also evaluate, at the end, the authors' public code's masking protocol (one random
+    # camera masked on a third of the steps; MurmConfig.eval_mask_mode)
+    eval_authors_masking: bool = False
     eval_envs: int = 4  # simulator processes
-    eval_seed: int = 100_000  # evaluation episode i has seed eval_seed + i
+    # episode i of the validation range has seed validation_seed + i: learning curves and every
+    # choice are made on these; the test range (test_seed + i) gives the reported numbers only
+    validation_seed: int = VALIDATION_SEED
+    test_seed: int = TEST_SEED
 
     def __post_init__(self) -> None:
         if not isinstance(self.policy, MurmConfig):
             raise ValueError("the config needs a `policy:` section with `type: murm`")
         if self.steps < 1 or self.batch_size < 1 or self.eval_every < 1 or self.log_every < 1:
             raise ValueError("steps, batch_size, eval_every and log_every must be positive")
+        validation = range(self.validation_seed, self.validation_seed + max(self.eval_episodes, self.final_eval_episodes))
+        test = range(self.test_seed, self.test_seed + self.final_eval_episodes)
+        if min(self.validation_seed, self.test_seed) < 0 or (validation.start < test.stop and test.start < validation.stop):
+            raise ValueError(f"validation seeds {validation.start}-{validation.stop - 1} and test seeds "
+                             f"{test.start}-{test.stop - 1} must be non-negative and disjoint")
 
 
 def build_policy(config: MurmConfig, dataset, device: torch.device) -> MurmPolicy:
@@ -175,16 +186,18 @@ def train(config: TrainConfig) -> dict:
     def elapsed() -> float:
         return earlier_s + time.perf_counter() - started
 
-    seeds = evaluation_seeds(config.eval_episodes, config.eval_seed)
+    seeds = evaluation_seeds(config.eval_episodes, config.validation_seed)
     image_size = policy_config.encoder_config(policy_config.cameras[0]).image_size
     with Evaluator(config.task, policy_config.cameras, image_size, config.eval_envs) as evaluator, StopRequest() as stop:
 
-        def run_evaluation(at_step: int, eval_seeds: list[int]) -> list[dict]:
+        def run_evaluation(at_step: int, eval_seeds: list[int], split: str, authors: bool = False) -> list[dict]:
+            levels = [(mask_p, "paper") for mask_p in config.eval_mask_p] + ([(1 / 3, "authors")] if authors else [])
             rows = []
-            for mask_p in config.eval_mask_p:
-                result = evaluator.evaluate(policy, eval_seeds, mask_p)
-                rows.append({"step": at_step, "mask_p": mask_p, "success_rate": result.success_rate,
-                             "episodes": len(eval_seeds), "seconds": round(result.seconds, 1)})
+            for mask_p, mode in levels:
+                result = evaluator.evaluate(policy, eval_seeds, mask_p, mode)
+                rows.append({"step": at_step, "mask_p": round(mask_p, 4), "success_rate": result.success_rate,
+                             "episodes": len(eval_seeds), "seconds": round(result.seconds, 1), "split": split,
+                             "mask_mode": mode})
             return rows
 
         policy.train()
@@ -207,7 +220,7 @@ def train(config: TrainConfig) -> dict:
                 progress.set_postfix(critic=f"{row['critic_loss']:.3f}", q=f"{row['q']:.1f}")
                 window, window_start = [], time.perf_counter()
             if step % config.eval_every == 0 and step < config.steps:
-                rows = run_evaluation(step, seeds)
+                rows = run_evaluation(step, seeds, "validation")
                 _append_csv(out / "eval.csv", EVAL_COLUMNS, rows)
                 progress.set_postfix(success=f"{rows[0]['success_rate']:.2f}")
                 save_checkpoint(last, policy, optimizer, step, generator, elapsed())
@@ -217,9 +230,11 @@ def train(config: TrainConfig) -> dict:
         save_checkpoint(last, policy, optimizer, step, generator, elapsed())
         if step < config.steps:
             raise TrainingInterrupted(f"stopped at step {step}; run the same command again to resume")
-        final_seeds = evaluation_seeds(config.final_eval_episodes, config.eval_seed)
-        final = run_evaluation(step, final_seeds)
-    _append_csv(out / "eval.csv", EVAL_COLUMNS, final)
+        validation_seeds = evaluation_seeds(config.final_eval_episodes, config.validation_seed)
+        final_validation = run_evaluation(step, validation_seeds, "validation", config.eval_authors_masking)
+        test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
+        final = run_evaluation(step, test_seeds, "test", config.eval_authors_masking)
+    _append_csv(out / "eval.csv", EVAL_COLUMNS, final_validation + final)
     plot_learning_curve(out)
     summary = {
         "method": policy_config.method,
@@ -227,7 +242,9 @@ def train(config: TrainConfig) -> dict:
         "task": config.task,
         "steps": step,
         "seed": config.seed,
-        "eval_seeds": [final_seeds[0], final_seeds[-1]],
+        "validation_seeds": [validation_seeds[0], validation_seeds[-1]],
+        "eval_seeds": [test_seeds[0], test_seeds[-1]],  # the test range
+        "final_validation": final_validation,
         "final": final,
         "checkpoint": str(last / "pretrained_model"),
         "wall_s": round(elapsed(), 1),

@@ -162,7 +162,9 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--image-size", type=int, default=48)
     col.add_argument("--seed", type=int, default=0, help="base seed: episode i depends on it and i alone")
     col.add_argument("--noise-k", type=float, default=1.0, help="expert noise k in a* + k N(0, std) (default: 1)")
-    col.add_argument("--noise-std", type=float, default=0.1, help="noise std (default: the paper's 0.1)")
+    col.add_argument("--noise-std", type=float, default=None,
+                     help="noise std (default: the task's calibrated std, about 75%% expert success as in the paper; "
+                          "0.1 is the paper's std, --noisy-fraction 0 the clean expert)")
     col.add_argument("--noisy-fraction", type=float, default=1.0, help="share of noisy episodes (default: 1)")
     col.add_argument("--resume", action="store_true", help="carry on an interrupted or shorter collection")
     col.add_argument("--overwrite", action="store_true", help="delete an existing dataset at --root first")

@@ -33,6 +33,7 @@ from lerobot_murm.collection.episodes import EpisodeRecipe, run_episode
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES, MurmEnv
 from lerobot_murm.env.murm_env import TASK_DESCRIPTIONS
 from lerobot_murm.env.cameras import validate_camera_names
+from lerobot_murm.expert import default_noise_std
 
 
 @dataclass
@@ -47,7 +48,7 @@ class CollectConfig:
     seed: int = 0
     noise_k: float = 1.0
     noisy_fraction: float = 1.0
-    noise_std: float = 0.1
+    noise_std: float | None = None  # None: the task's calibrated std (about 75 % success)
     resume: bool = False
     overwrite: bool = False
 
@@ -60,8 +61,10 @@ class CollectConfig:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
         if self.noise_k < 0:
             raise ValueError(f"noise_k must be >= 0, got {self.noise_k}")
-        if self.noise_std < 0:
-            raise ValueError(f"noise_std must be >= 0, got {self.noise_std}")
+        if self.noise_std is None:
+            self.noise_std = default_noise_std(self.task)
+        if not np.isfinite(self.noise_std) or self.noise_std < 0:
+            raise ValueError(f"noise_std must be a finite number >= 0, got {self.noise_std}")
         if not 0.0 <= self.noisy_fraction <= 1.0:
             raise ValueError(f"noisy_fraction must be in [0, 1], got {self.noisy_fraction}")
         if self.resume and self.overwrite:

@@ -165,4 +165,4 @@ def read_recipe(root: Path) -> EpisodeRecipe | None:
     if not path.exists():
         return None
     recipe = json.loads(path.read_text())["recipe"]
-    return EpisodeRecipe(**{**recipe, "cameras": tuple(recipe["cameras"])})
+    return EpisodeRecipe(**{"scene": 1, **recipe, "cameras": tuple(recipe["cameras"])})  # 1: before versions

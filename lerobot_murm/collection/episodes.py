@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_murm.env import EPISODE_STEPS, MurmEnv, goal_key
-from lerobot_murm.expert import ScriptedExpert, noisy_action
+from lerobot_murm.env.murm_env import SCENE_VERSION
+from lerobot_murm.expert import PAPER_NOISE_STD, ScriptedExpert, noisy_action
 
 
 @dataclass(frozen=True)
@@ -24,7 +25,8 @@ class EpisodeRecipe:
     base_seed: int = 0
     noise_k: float = 1.0  # paper 4.1: a = clip(a* + k N(0, noise_std), -1, 1)
     noisy_fraction: float = 1.0  # share of episodes with noise (Table 7 varies it)
-    noise_std: float = 0.1  # the paper's 0.1; larger values give more failed demonstrations
+    noise_std: float = PAPER_NOISE_STD  # the collections use the per-task calibrated std
+    scene: int = SCENE_VERSION  # the simulator's scene and camera version the episodes were rendered in
 
     def episode_seeds(self, index: int) -> tuple[int, np.random.Generator]:
         """The env seed and the noise generator of episode `index`: from base seed and index alone."""

@@ -27,6 +27,9 @@ SUBSTEPS = 10
 CONTROL_FPS = round(1.0 / (PHYSICS_TIMESTEP * SUBSTEPS))  # 24 Hz
 MAX_STEP_M = 0.025  # end-effector displacement for an action of 1 along an axis
 EPISODE_STEPS = 100
+# Bumped whenever a camera or the scene changes (2: the top camera moved), so that datasets
+# rendered by another version are neither resumed nor reused.
+SCENE_VERSION = 2
 HOME_EE_POSITION = np.array([0.45, 0.0, 0.22])
 HOME_JITTER_M = 0.02
 SETTLE_SUBSTEPS = 20

@@ -18,7 +18,7 @@ from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES
 @dataclass
 class CollectionSpec:
     episodes: int = 1000
-    noise_std: float = 0.1
+    noise_std: float | None = None  # None: each task's calibrated std (about 75 % expert success)
     noisy_fraction: float = 1.0
     seed: int = 0
     workers: int = 2

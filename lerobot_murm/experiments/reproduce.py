@@ -26,6 +26,8 @@ from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import episode_successes, read_recipe
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
+from lerobot_murm.env.murm_env import SCENE_VERSION
+from lerobot_murm.expert import default_noise_std
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
@@ -41,7 +43,8 @@ def dataset_root(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
     c = config.collection
     episodes = cell.episodes or c.episodes
     noisy = c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction
-    name = f"{task}-{episodes}ep-std{c.noise_std:g}-noisy{noisy:g}-seed{c.seed}-{c.image_size}px"
+    std = default_noise_std(task) if c.noise_std is None else c.noise_std
+    name = f"{task}-scene{SCENE_VERSION}-{episodes}ep-std{std:g}-noisy{noisy:g}-seed{c.seed}-{c.image_size}px"
     return Path(config.work_dir) / "datasets" / name
 
 
@@ -50,7 +53,7 @@ def ensure_dataset(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
     c = config.collection
     collect_config = CollectConfig(
         task=task, root=root, episodes=cell.episodes or c.episodes, workers=c.workers, cameras=CAMERA_NAMES,
-        image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,
+        image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,  # None: the task's calibrated std
         noisy_fraction=c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction,
         resume=root.exists(),
     )

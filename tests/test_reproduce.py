@@ -225,3 +225,21 @@ def test_a_grid_without_a_paper_table_gets_no_paper_columns():
     assert ours.splitlines()[0] == "| cell | masking | place_in_box | place_in_random_box | pick_up |"
     assert "| single-global | 0% | - | - | 56.0 ± 0.0 (n=1) |" in ours
     assert "pick_up: ours | paper" in comparison("table3", rows)
+
+
+def test_a_choosing_grid_reports_validation_episodes_and_never_the_test_ones():
+    from lerobot_murm.experiments.results import aggregate
+
+    def run(seed: int, validation: float, test: float) -> dict:
+        return {"task": "place_in_box", "cell": "c", "method": "single", "cameras": ["global"], "seed": seed,
+                "steps": 10, "wall_s": 1.0, "train_steps_per_s": 1.0,
+                "final": [{"mask_p": 0.0, "success_rate": test, "episodes": 100}],
+                "final_validation": [{"mask_p": 0.0, "success_rate": validation, "episodes": 100}]}
+
+    runs = [run(0, 0.5, 0.9), run(1, 0.7, 0.1)]
+    (validation,), (test,) = aggregate(runs, "validation"), aggregate(runs)
+    assert validation["success_mean"] == 60.0 and test["success_mean"] == 50.0
+    assert validation["success_std"] == pytest.approx(14.14, abs=0.01)  # sample std, ddof 1
+    with pytest.raises(Exception) as error:  # draccus wraps the config's ValueError
+        load_reproduce_config(REPO / "configs/reproduce/table4.yaml", ["--report_split=train"])
+    assert "report_split must be 'test' or 'validation'" in str(error.value.__cause__ or error.value)

@@ -73,6 +73,9 @@ class ReproduceConfig:
     work_dir: str = "outputs/murm"  # datasets, encoders, caches, runs (large, not in git)
     results_dir: str = "results"  # small result files, tables and figures (committed)
     device: str = "auto"
+    # which evaluation episodes the grid's tables show: "test" (the reported numbers) or
+    # "validation" (grids that choose a setting: the test episodes are never looked at)
+    report_split: str = "test"
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]
@@ -84,6 +87,8 @@ class ReproduceConfig:
             bad = [c for c in cell.cameras if c not in CAMERA_NAMES]
             if bad:
                 raise ValueError(f"cell {cell.label}: unknown cameras {bad}; choose from {list(CAMERA_NAMES)}")
+        if self.report_split not in ("test", "validation"):
+            raise ValueError(f"report_split must be 'test' or 'validation', got {self.report_split!r}")
         labels = [c.label for c in self.cells]
         if len(set(labels)) != len(labels):
             raise ValueError(f"cell labels must be unique, got {labels}")

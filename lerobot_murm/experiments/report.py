@@ -112,9 +112,11 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         rows = _rows(results / "table.csv")
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
         beside = "; the paper's value beside ours" if results.name in PAPER_TABLES else ""
+        split = load_reproduce_config(results / "config.yaml").report_split
         sections.append(
             f"## {results.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds "
-            f"(n = seeds finished), on test episodes only, {rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level{beside}. "
+            f"(n = seeds finished), {rows[0]['episodes_per_seed']} {split} episodes per seed and masking "
+            f"level{beside}. "
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
             + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")

@@ -22,10 +22,13 @@ COLUMNS = ["task", "cell", "method", "cameras", "mask_p", "success_mean", "succe
            "episodes_per_seed", "steps", "wall_s_mean", "train_steps_per_s"]
 
 
-def aggregate(results: list[dict]) -> list[dict]:
+def aggregate(results: list[dict], split: str = "test") -> list[dict]:
+    """Mean and sample std over seeds per (task, cell, masking) of the final evaluations on
+    the `split` episodes: "test" for reported tables, "validation" for the grids that choose."""
+    key = "final" if split == "test" else "final_validation"
     groups: dict[tuple, list[tuple[dict, dict]]] = defaultdict(list)
     for result in results:
-        for final in result["final"]:
+        for final in result[key]:
             cell = result["cell"] + (", authors' masking" if final.get("mask_mode") == "authors" else "")
             groups[(result["task"], cell, final["mask_p"])].append((result, final))
     rows = []
@@ -85,15 +88,15 @@ def plot_curves(results: list[dict], path: Path) -> None:
 
 
 def write_tables(config, results: list[dict], out: Path) -> list[dict]:
-    rows = aggregate(results)
+    rows = aggregate(results, config.report_split)
     with (out / "table.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, COLUMNS)
         writer.writeheader()
         writer.writerows(rows)
     table = markdown_table(rows)
     seeds = ", ".join(str(s) for s in sorted({r["seed"] for r in results}))
-    header = (f"# {config.name}\n\nSuccess rate (%), mean ± std over training seeds {seeds}; "
-              f"{rows[0]['episodes_per_seed']} evaluation episodes per seed and masking level.\n\n")
+    header = (f"# {config.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds {seeds}; "
+              f"{rows[0]['episodes_per_seed']} {config.report_split} episodes per seed and masking level.\n\n")
     (out / "table.md").write_text(header + table)
     plot_curves(results, out / "curves.png")
     return rows

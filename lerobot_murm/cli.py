@@ -123,13 +123,22 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _reproduce(args: argparse.Namespace) -> None:
+    from lerobot_murm.experiments.executors import make_executor
     from lerobot_murm.experiments.reproduce import load_reproduce_config, reproduce
     from lerobot_murm.stopping import TrainingInterrupted
 
+    config = load_reproduce_config(args.config, args.overrides)
     try:
-        out = reproduce(load_reproduce_config(args.config, args.overrides))
+        executor = make_executor(args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task,
+                                 args.shard_episodes)
+    except ValueError as error:
+        raise SystemExit(f"murm reproduce: {error}") from None
+    try:
+        out = reproduce(config, executor)
     except TrainingInterrupted as stop:
         raise SystemExit(f"murm reproduce: {stop}; finished cells are kept") from None
+    finally:
+        executor.close()
     print(f"tables and figures: {out}")
 
 
@@ -214,6 +223,14 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Further --key=value arguments override the YAML, e.g. --seeds=[0] --train.steps=1000",
     )
     rep.add_argument("--config", required=True, help="e.g. configs/reproduce/smoke.yaml")
+    rep.add_argument("--executor", choices=["local", "ray"], default="local",
+                     help="local (default) or ray: every stage a Ray task (needs the [ray] extra and a shared work_dir)")
+    rep.add_argument("--jobs", type=int, default=1,
+                     help="local executor: runs at once, each with cores/JOBS torch threads (default: %(default)s)")
+    rep.add_argument("--address", default=None, help="ray: the cluster's address (default: RAY_ADDRESS, else a new local one)")
+    rep.add_argument("--cpus-per-task", type=int, default=1, help="ray: CPUs (torch threads) per encoder or training task")
+    rep.add_argument("--gpus-per-task", type=float, default=0.0, help="ray: GPUs per encoder or training task (e.g. 1 or 0.25)")
+    rep.add_argument("--shard-episodes", type=int, default=100, help="ray: episodes per collection task (default: %(default)s)")
     rep.set_defaults(func=_reproduce, accepts_overrides=True)
 
     report = commands.add_parser("report", help="REPORT.md: every finished grid in results/ beside the paper's tables")

@@ -51,10 +51,13 @@ class CollectConfig:
     noise_std: float | None = None  # None: the task's calibrated std (about 75 % success)
     resume: bool = False
     overwrite: bool = False
+    first_episode: int = 0  # a shard of a larger collection holds episodes first_episode, first_episode + 1, ...
 
     def __post_init__(self) -> None:
         if self.task not in TASK_NAMES:
             raise ValueError(f"unknown task {self.task!r}; valid tasks: {list(TASK_NAMES)}")
+        if self.first_episode < 0:
+            raise ValueError(f"first_episode must be >= 0, got {self.first_episode}")
         if self.episodes < 1:
             raise ValueError(f"episodes must be at least 1, got {self.episodes}")
         if self.workers < 1:
@@ -104,7 +107,7 @@ def collect(config: CollectConfig) -> dict:
     successes = 0
     with _deferred_stop_signals() as stop_requested:
         try:
-            for written, episode in enumerate(_episodes(config, range(done, config.episodes)), start=1):
+            for written, episode in enumerate(_episodes(config, range(config.first_episode + done, config.first_episode + config.episodes)), start=1):
                 murm_dataset.save_staged_episode(dataset, episode, description)  # never cut in half
                 successes += episode.succeeded
                 progress.set_postfix(

@@ -23,12 +23,14 @@ import draccus
 import torch
 
 from lerobot_murm.collection import CollectConfig, collect
-from lerobot_murm.collection.dataset import episode_successes, read_recipe
+from lerobot_murm.collection.dataset import episode_successes
+from lerobot_murm.collection.shards import collect_shard, is_complete, merge_shards, shard_ranges
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
 from lerobot_murm.env.murm_env import SCENE_VERSION
 from lerobot_murm.expert import default_noise_std
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
+from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import validation_curve
@@ -48,20 +50,21 @@ def dataset_root(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
     return Path(config.work_dir) / "datasets" / name
 
 
-def ensure_dataset(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
+def collect_config(config: ReproduceConfig, task: str, cell: CellSpec) -> CollectConfig:
     root = dataset_root(config, task, cell)
     c = config.collection
-    collect_config = CollectConfig(
+    return CollectConfig(
         task=task, root=root, episodes=cell.episodes or c.episodes, workers=c.workers, cameras=CAMERA_NAMES,
         image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,  # None: the task's calibrated std
         noisy_fraction=c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction,
-        resume=root.exists(),
     )
-    summary = root / "meta" / "murm_collection.json"
-    done = summary.exists() and json.loads(summary.read_text())["episodes"] >= collect_config.episodes
-    if not (done and read_recipe(root) == collect_config.recipe):
-        collect(collect_config)
-    return root
+
+
+def ensure_dataset(collect_config: CollectConfig) -> Path:
+    """The dataset, collected or resumed (whatever ran before, on whichever machine) if unfinished."""
+    if not is_complete(collect_config):
+        collect(replace(collect_config, resume=collect_config.root.exists()))
+    return collect_config.root
 
 
 def encoder_is_finished(out: Path, steps: int) -> bool:
@@ -72,20 +75,23 @@ def encoder_is_finished(out: Path, steps: int) -> bool:
     return not metrics["interrupted"] and metrics["steps"] == steps
 
 
-def ensure_encoders(config: ReproduceConfig, root: Path, cameras: list[str], device: str) -> Path:
-    """One VQ-VAE per camera in `<encoder_dir>/<camera>`, with its epsilon statistics beside it."""
-    encoder_dir = Path(config.work_dir) / "vqvae" / f"{root.name}-{config.vqvae.steps}steps"
+def encoder_dir(config: ReproduceConfig, root: Path) -> Path:
+    return Path(config.work_dir) / "vqvae" / f"{root.name}-{config.vqvae.steps}steps"
+
+
+def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
+    """A camera's VQ-VAE in `<encoder_dir>/<camera>`, with its epsilon statistics beside it."""
+    device = str(resolve_device(config.device))
+    out = encoder_dir(config, root) / camera
     repo_id = f"local/{root.name}"
-    for camera in cameras:
-        out = encoder_dir / camera
-        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
-        if not encoder_is_finished(out, steps):
-            vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
-            train_vqvae(repo_id, root, camera, out, vq_config, device=device)
-        if not (out / "latent_distance.json").exists():
-            cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)
-            save_beside_encoder(distance_statistics(cache, episode_successes(repo_id, root)), out)
-    return encoder_dir
+    steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
+    if not encoder_is_finished(out, steps):
+        vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
+        train_vqvae(repo_id, root, camera, out, vq_config, device=device)
+    if not (out / "latent_distance.json").exists():
+        cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)
+        save_beside_encoder(distance_statistics(cache, episode_successes(repo_id, root)), out)
+    return out
 
 
 def run_dir(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> Path:
@@ -142,18 +148,14 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
     return None
 
 
-def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, device: str) -> dict:
-    """One training run and its final evaluation; its result file, the one already there, or
-    another grid's run of the same recipe."""
-    path = result_path(config, task, cell, seed)
-    if path.exists():
-        return json.loads(path.read_text())
+def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
+    """One training run and its final evaluation (resumed from its checkpoint, or read back
+    when finished); its result, for the driver to store."""
+    root = ensure_dataset(collect_config(config, task, cell))
+    encoders = encoder_dir(config, root)
+    for camera in cell.cameras:
+        ensure_encoder(config, root, camera)
     recipe = run_recipe(config, task, cell, seed)
-    reused = finished_elsewhere(config, recipe, list(cell.eval_mask_p))
-    if reused is not None:
-        return _store(path, reused | {"experiment": config.name, "cell": cell.label})
-    root = ensure_dataset(config, task, cell)
-    encoders = ensure_encoders(config, root, cell.cameras, device)
     start = time.perf_counter()
     summary = train(train_config(config, task, cell, seed, root, encoders))
     out = Path(summary["checkpoint"]).parents[2]
@@ -169,7 +171,7 @@ def run_cell(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, devi
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
         "hardware": hardware(), "curve": _read_curve(out / "eval.csv"), "recipe": recipe,
     }
-    return _store(path, result)
+    return result
 
 
 def _store(path: Path, result: dict) -> dict:
@@ -196,19 +198,51 @@ def _median_steps_per_s(path: Path) -> float:
     return round(rates[len(rates) // 2], 1) if rates else 0.0
 
 
-def reproduce(config: ReproduceConfig) -> Path:
-    device = str(resolve_device(config.device))
+def build_datasets(executor, collections: list[CollectConfig], workers: int) -> None:
+    """Collect the unfinished datasets: in shards merged afterwards where the executor shards
+    (a dataset half-collected in one piece is resumed in one piece), else whole."""
+    todo = [c for c in collections if not is_complete(c)]
+    sharded = {c.root: shard_ranges(c.episodes, executor.shard_episodes)
+               for c in todo if executor.shard_episodes and not c.root.exists()}
+    _run_all(executor, ensure_dataset, [(c,) for c in todo if c.root not in sharded], cpus=workers, gpus=0)
+    shards = [(c, episodes) for c in todo if c.root in sharded for episodes in sharded[c.root]]
+    _run_all(executor, collect_shard, shards, cpus=1, gpus=0)
+    _run_all(executor, merge_shards, [(c, sharded[c.root]) for c in todo if c.root in sharded], cpus=1, gpus=0)
+
+
+def _run_all(executor, fn, jobs: list[tuple], **resources) -> None:
+    for _ in executor.map(fn, jobs, **resources):
+        pass
+
+
+def reproduce(config: ReproduceConfig, executor=None) -> Path:
+    """Run the grid's unfinished runs on `executor` (default: one after another in this
+    process): datasets, then encoders, then training runs, each stage's jobs side by side."""
+    executor = executor or SerialExecutor()
     out = Path(config.results_dir) / config.name
     out.mkdir(parents=True, exist_ok=True)
     draccus.dump(config, (out / "config.yaml").open("w"))
-    results = []
-    total = len(config.tasks) * len(config.cells) * len(config.seeds)
-    for task in config.tasks:
-        for cell in config.cells:
-            for seed in config.seeds:
-                results.append(run_cell(config, task, cell, seed, device))
-                print(f"[{len(results)}/{total}] {task} {cell.label} seed {seed}: " + ", ".join(
-                    f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in results[-1]["final"]))
+    # jobs may run on other machines, in another working directory: absolute paths
+    shipped = replace(config, work_dir=str(Path(config.work_dir).resolve()))
+    grid = [(task, cell, seed) for task in config.tasks for cell in config.cells for seed in config.seeds]
+    todo = []
+    for task, cell, seed in grid:
+        path = result_path(config, task, cell, seed)
+        if path.exists():
+            continue
+        reused = finished_elsewhere(config, run_recipe(config, task, cell, seed), list(cell.eval_mask_p))
+        if reused is not None:
+            _store(path, reused | {"experiment": config.name, "cell": cell.label})
+        else:
+            todo.append((shipped, task, cell, seed))
+    needed = {c.root: c for c in (collect_config(shipped, task, cell) for _, task, cell, _ in todo)}
+    build_datasets(executor, list(needed.values()), config.collection.workers)
+    encoders = sorted({(dataset_root(shipped, task, cell), camera) for _, task, cell, _ in todo for camera in cell.cameras})
+    _run_all(executor, ensure_encoder, [(shipped, root, camera) for root, camera in encoders])
+    for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
+        _store(result_path(config, task, cell, seed), result)
+        print(f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: " + ", ".join(
+            f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in result["final"]))
     rows = write_tables(config, grid_results(config, out / "runs"), out)
     print(markdown_table(rows))
     return out

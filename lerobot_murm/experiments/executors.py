@@ -1,0 +1,133 @@
+"""Where `murm reproduce` runs its jobs: in this process, in N local processes, or on a Ray cluster.
+
+The driver (`reproduce`) runs its stages in order (collection, merges, encoders, training
+runs), each a list of independent jobs: a module-level function and its arguments.
+`map` yields every job's result as soon as it finishes, so the driver writes a run's
+result file at once and a stopped driver loses no finished run. Every job is idempotent
+(it skips or resumes what is already on disk), which is what makes a retried job safe.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from multiprocessing import get_context
+from typing import Any
+
+import torch
+
+from lerobot_murm.collection.collect import CollectionInterrupted
+from lerobot_murm.stopping import TrainingInterrupted
+
+Job = tuple[Any, ...]
+EXECUTORS = ("local", "ray")
+
+
+class SerialExecutor:
+    """The default: every job in this process, one after another."""
+
+    shard_episodes: int | None = None  # collect each dataset in one piece (with its own worker processes)
+
+    def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
+        for job in jobs:
+            yield job, fn(*job)
+
+    def close(self) -> None:
+        pass
+
+
+def _set_threads(threads: int) -> None:
+    torch.set_num_threads(threads)
+
+
+class ProcessExecutor:
+    """`--jobs N`: N jobs at once in N local processes with `cores // N` torch threads each.
+
+    Two trainers that each use every core slow each other down far more than 2x (thread
+    oversubscription); dividing the cores between them lets their throughputs add up.
+    """
+
+    shard_episodes: int | None = None
+
+    def __init__(self, jobs: int, cores: int | None = None):
+        if jobs < 1:
+            raise ValueError(f"--jobs must be at least 1, got {jobs}")
+        self.threads = max(1, (cores or os.cpu_count() or 1) // jobs)
+        self.pool = ProcessPoolExecutor(jobs, mp_context=get_context("forkserver"), initializer=_set_threads,
+                                        initargs=(self.threads,))
+
+    def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
+        futures = {self.pool.submit(fn, *job): job for job in jobs}
+        pending = set(futures)
+        try:
+            while pending:
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in done:
+                    yield futures[future], future.result()
+        finally:
+            for future in pending:
+                future.cancel()
+
+    def close(self) -> None:
+        self.pool.shutdown(cancel_futures=True)
+
+
+def _call_with_threads(fn: Callable, threads: int, *job: Any) -> Any:
+    """A Ray task: `fn(*job)` with as many torch threads as the task asked CPUs for."""
+    torch.set_num_threads(threads)
+    return fn(*job)
+
+
+class RayExecutor:
+    """`--executor ray [--address ADDR]`: every job a Ray task with its resource request.
+
+    Ray retries a task whose worker or node died (`max_retries`) and one stopped by a
+    SIGTERM (a preemption: the trainer saves its checkpoint first); the retry resumes from
+    the checkpoint in the shared `work_dir`. Collections are split into shards of
+    `shard_episodes` episodes, one task each.
+    """
+
+    def __init__(self, address: str | None = None, cpus_per_task: int = 1, gpus_per_task: float = 0.0,
+                 shard_episodes: int = 100, retries: int = 3):
+        try:
+            import ray
+        except ImportError:
+            raise SystemExit("--executor ray needs Ray: pip install 'lerobot_policy_murm[ray]'") from None
+        if cpus_per_task < 1 or gpus_per_task < 0 or shard_episodes < 1 or retries < 0:
+            raise ValueError("cpus_per_task and shard_episodes must be >= 1, gpus_per_task and retries >= 0")
+        self.ray = ray
+        self.cpus, self.gpus, self.shard_episodes, self.retries = cpus_per_task, gpus_per_task, shard_episodes, retries
+        ray.init(address=address, log_to_driver=True)
+
+    def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
+        cpus = self.cpus if cpus is None else cpus
+        task = self.ray.remote(_call_with_threads).options(
+            name=fn.__name__, num_cpus=cpus, num_gpus=self.gpus if gpus is None else gpus,
+            max_retries=self.retries, retry_exceptions=[TrainingInterrupted, CollectionInterrupted],
+        )
+        refs = {task.remote(fn, cpus, *job): job for job in jobs}
+        pending = list(refs)
+        try:
+            while pending:
+                done, pending = self.ray.wait(pending, num_returns=1)
+                yield refs[done[0]], self.ray.get(done[0])
+        finally:
+            for ref in pending:
+                self.ray.cancel(ref)
+
+    def close(self) -> None:
+        self.ray.shutdown()
+
+
+def make_executor(kind: str = "local", jobs: int = 1, address: str | None = None, cpus_per_task: int = 1,
+                  gpus_per_task: float = 0.0, shard_episodes: int = 100):
+    if kind not in EXECUTORS:
+        raise ValueError(f"unknown executor {kind!r}; choose from {list(EXECUTORS)}")
+    if kind == "ray":
+        if jobs != 1:
+            raise ValueError("--jobs is for the local executor; Ray runs as many tasks as the cluster has room for")
+        return RayExecutor(address, cpus_per_task, gpus_per_task, shard_episodes)
+    if address is not None:
+        raise ValueError("--address is for --executor ray")
+    return SerialExecutor() if jobs == 1 else ProcessExecutor(jobs)

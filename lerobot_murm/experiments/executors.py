@@ -37,6 +37,10 @@ class SerialExecutor:
         pass
 
 
+def threads_per_job(jobs: int, cores: int | None = None) -> int:
+    return max(1, (cores or os.cpu_count() or 1) // jobs)
+
+
 def _set_threads(threads: int) -> None:
     torch.set_num_threads(threads)
 
@@ -53,7 +57,7 @@ class ProcessExecutor:
     def __init__(self, jobs: int, cores: int | None = None):
         if jobs < 1:
             raise ValueError(f"--jobs must be at least 1, got {jobs}")
-        self.threads = max(1, (cores or os.cpu_count() or 1) // jobs)
+        self.threads = threads_per_job(jobs, cores)
         self.pool = ProcessPoolExecutor(jobs, mp_context=get_context("forkserver"), initializer=_set_threads,
                                         initargs=(self.threads,))
 

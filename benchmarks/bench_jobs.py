@@ -1,0 +1,76 @@
+"""Whole-grid wall time of `murm reproduce` with `--jobs 1` and `--jobs N`, same grid slice.
+
+Not a test. Run it on an otherwise idle machine and copy the table into BENCHMARKS.md:
+
+    .venv/bin/python benchmarks/bench_jobs.py [--jobs 2] [--runs 2] [--steps 1000] [--repeats 2]
+
+The slice: the smoke grid's single-view cell on `--runs` seeds (48x48 images, batch 256,
+the final evaluation cut to 2 episodes so that training dominates). The dataset and the
+encoder are built once before timing; each timed sitting then trains every run of the
+slice from scratch (the runs and results of the previous sitting are deleted) and
+includes the executor's start-up. Sittings alternate between 1 and N jobs so that both
+see the same machine noise; the medians are reported, and their ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import statistics
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+from lerobot_murm.experiments.executors import make_executor, threads_per_job
+from lerobot_murm.experiments.reproduce import load_reproduce_config, reproduce
+
+REPO = Path(__file__).parents[1]
+
+
+def sitting(config, jobs: int) -> float:
+    shutil.rmtree(Path(config.work_dir) / "runs", ignore_errors=True)
+    shutil.rmtree(Path(config.results_dir), ignore_errors=True)
+    start = time.perf_counter()
+    executor = make_executor("local", jobs)
+    try:
+        reproduce(config, executor)
+    finally:
+        executor.close()
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--runs", type=int, default=2, help="training runs in the slice (seeds 0, 1, ...)")
+    parser.add_argument("--steps", type=int, default=1000, help="updates per run")
+    parser.add_argument("--repeats", type=int, default=2)
+    args = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as tmp:
+        config = load_reproduce_config(REPO / "configs/reproduce/smoke.yaml", [
+            f"--work_dir={tmp}/work", f"--results_dir={tmp}/results", f"--seeds={list(range(args.runs))}",
+            "--collection.episodes=10", "--vqvae.steps=50", f"--train.steps={args.steps}",
+            f"--train.eval_every={args.steps}", f"--train.log_every={args.steps // 4}", "--train.final_eval_episodes=2",
+            "--train.eval_envs=1",
+        ])
+        config.cells = [cell for cell in config.cells if cell.method == "single"]
+        config.cells[0].eval_mask_p = [0.0]
+        sitting(config, 1)  # untimed: collects the dataset and trains the encoder (and warms the caches)
+        times: dict[int, list[float]] = {1: [], args.jobs: []}
+        for _ in range(args.repeats):
+            for jobs in times:
+                times[jobs].append(sitting(config, jobs))
+                print(f"jobs {jobs}: {times[jobs][-1]:.1f} s")
+    model = subprocess.run("lscpu | grep 'Model name'", shell=True, capture_output=True, text=True).stdout.strip()
+    print(f"\n{model}\n{args.runs} runs of {args.steps} updates, single view, batch 256; {args.repeats} sittings each")
+    print("| jobs | torch threads per run | grid wall time (median) | all sittings |\n|---:|---:|---:|---|")
+    for jobs, seconds in times.items():
+        threads = threads_per_job(jobs) if jobs > 1 else "all"
+        print(f"| {jobs} | {threads} | {statistics.median(seconds):.1f} s | {', '.join(f'{s:.1f}' for s in seconds)} |")
+    print(f"--jobs {args.jobs} over --jobs 1: {statistics.median(times[1]) / statistics.median(times[args.jobs]):.2f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,151 @@
+"""`murm reproduce` on other executors: `--jobs N` local processes, and a real local Ray
+cluster (a head and a worker node started here, several worker processes) that must give
+the local executor's results, with the collection in shards and a worker killed mid-run."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from lerobot_murm.experiments.executors import ProcessExecutor, SerialExecutor, make_executor
+from test_reproduce import MURM, REPO, TINY
+
+RAY = Path(sys.executable).parent / "ray"
+TIMING_FIELDS = ("wall_s", "train_steps_per_s")
+
+
+def _threads() -> int:
+    import torch
+
+    return torch.get_num_threads()
+
+
+def test_jobs_divide_the_cores_between_their_processes():
+    executor = ProcessExecutor(jobs=2, cores=4)
+    try:
+        threads = [result for _, result in executor.map(_threads, [(), ()])]
+    finally:
+        executor.close()
+    assert threads == [2, 2]  # both jobs ran, each with 4 // 2 threads
+    assert list(SerialExecutor().map(divmod, [(7, 2), (9, 4)])) == [((7, 2), (3, 1)), ((9, 4), (2, 1))]
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--jobs=0"], "--jobs must be at least 1"),
+    (["--executor=ray", "--jobs=2"], "--jobs is for the local executor"),
+    (["--address=127.0.0.1:1"], "--address is for --executor ray"),
+])
+def test_bad_executor_flags_stop_with_one_line(flags, message):
+    from lerobot_murm.cli import main
+
+    with pytest.raises(SystemExit, match=message):
+        main(["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *flags])
+    assert make_executor("local").__class__ is SerialExecutor
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def ray_cluster():
+    """A head node (1 CPU) and a worker node (2 CPUs) on this machine, each `ray start` in its
+    own process group so that teardown stops exactly this cluster's processes."""
+    temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # short: Ray's socket paths must stay under 107 characters
+    env = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1", "RAY_USAGE_STATS_ENABLED": "0"}
+    address = f"127.0.0.1:{_free_port()}"
+    nodes = []
+
+    def start(*args: str) -> None:
+        node = subprocess.Popen([str(RAY), "start", *args, f"--dashboard-agent-listen-port={_free_port()}"],
+                                env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True)
+        nodes.append(node)
+        out = node.communicate(timeout=120)[0]
+        assert node.returncode == 0, out[-3000:]
+
+    try:
+        start("--head", f"--port={address.split(':')[1]}", "--num-cpus=1", f"--temp-dir={temp}", "--include-dashboard=false")
+        start(f"--address={address}", "--num-cpus=2")
+        yield address
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            for node in nodes:
+                try:
+                    os.killpg(node.pid, sig)
+                except ProcessLookupError:
+                    pass
+            time.sleep(3 if sig == signal.SIGTERM else 0)
+        subprocess.run(["rm", "-rf", temp])
+
+
+def _task_processes(name: str) -> list[int]:
+    """Ray worker processes running a task named `name` (not the simulator processes they fork)."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            title = (proc / "cmdline").read_bytes().split(b"\0")[0].decode()
+            parent = Path(f"/proc/{(proc / 'stat').read_text().rsplit(')', 1)[1].split()[1]}/cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if title.startswith(f"ray::{name}") and not parent.startswith(b"ray::"):
+            pids.append(int(proc.name))
+    return pids
+
+
+def _without_timings(result: dict) -> dict:
+    final = [{k: v for k, v in row.items() if k != "seconds"} for row in result["final"]]
+    return {k: v for k, v in result.items() if k not in TIMING_FIELDS} | {"final": final}
+
+
+def _frames(root: Path):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset(f"local/{root.name}", root=root).hf_dataset.with_format("arrow")[:]
+
+
+@pytest.mark.slow
+def test_the_smoke_grid_on_a_ray_cluster_matches_the_local_executor_and_survives_a_killed_worker(tmp_path, ray_cluster):
+    grid = ["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *TINY]
+    # the reference: the local executor, one torch thread like every Ray task here (so the same arithmetic)
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
+    local = subprocess.Popen([str(MURM), *grid, f"--work_dir={tmp_path / 'local'}",
+                              f"--results_dir={tmp_path / 'local' / 'results'}"],
+                             cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    on_ray = subprocess.Popen([str(MURM), *grid, "--work_dir=ray", "--results_dir=ray/results", "--executor=ray",
+                               f"--address={ray_cluster}", "--cpus-per-task=1", "--shard-episodes=2"],
+                              cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # kill -9 the workers running training tasks once a run has a checkpoint to resume from
+    deadline, killed = time.monotonic() + 600, []
+    while not killed and on_ray.poll() is None and time.monotonic() < deadline:
+        checkpoints = list((tmp_path / "ray" / "runs").glob("smoke/*/*/seed0/checkpoints/last/training_state.pt"))
+        killed = _task_processes("train_run") if checkpoints else []
+        for pid in killed:
+            os.kill(pid, signal.SIGKILL)
+        time.sleep(0.05)
+    ray_out = on_ray.communicate(timeout=900)[0]
+    local_out = local.communicate(timeout=900)[0]
+    assert local.returncode == 0, local_out[-5000:]
+    assert on_ray.returncode == 0, ray_out[-5000:]
+    assert killed, "no training task was caught running"
+    assert "resuming from step" in ray_out  # Ray retried the killed run, which resumed from its checkpoint
+
+    runs = sorted((tmp_path / "local" / "results" / "smoke" / "runs").glob("*.json"))
+    assert len(runs) == 2
+    for path in runs:
+        ours = json.loads((tmp_path / "ray" / "results" / "smoke" / "runs" / path.name).read_text())
+        assert _without_timings(ours) == _without_timings(json.loads(path.read_text())), path.name
+    # the collection ran as two shards of two episodes, merged into the same frames
+    name = "place_in_box-4ep-std0.1-noisy1-seed0-16px"
+    assert _frames(tmp_path / "ray" / "datasets" / name).equals(_frames(tmp_path / "local" / "datasets" / name))
+    assert sorted(p.name for p in (tmp_path / "ray" / "datasets").iterdir()) == [name]  # shards merged, removed
+    assert "(collect_shard pid=" in ray_out and "(train_run pid=" in ray_out  # the work ran as Ray tasks

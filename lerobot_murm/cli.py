@@ -137,6 +137,8 @@ def _reproduce(args: argparse.Namespace) -> None:
         out = reproduce(config, executor)
     except TrainingInterrupted as stop:
         raise SystemExit(f"murm reproduce: {stop}; finished cells are kept") from None
+    except KeyboardInterrupt:  # the driver of --jobs / --executor ray; its jobs save their checkpoints
+        raise SystemExit("murm reproduce: stopped; finished cells are kept, run the same command again to resume") from None
     finally:
         executor.close()
     print(f"tables and figures: {out}")

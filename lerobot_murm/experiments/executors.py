@@ -102,7 +102,7 @@ class RayExecutor:
             raise ValueError("cpus_per_task and shard_episodes must be >= 1, gpus_per_task and retries >= 0")
         self.ray = ray
         self.cpus, self.gpus, self.shard_episodes, self.retries = cpus_per_task, gpus_per_task, shard_episodes, retries
-        ray.init(address=address, log_to_driver=True)
+        ray.init(address=address)
 
     def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
         cpus = self.cpus if cpus is None else cpus

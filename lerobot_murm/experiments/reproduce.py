@@ -7,7 +7,9 @@ Each finished run writes a small JSON file under `results/<name>/runs/`; a rerun
 those, so a long grid runs in as many sittings as it takes. A run another grid already
 finished with the same recipe (Table 3's global camera is Table 4's single-view
 baseline) is taken from there instead of trained again. Missing pieces are rebuilt
-deterministically from their seeds.
+deterministically from their seeds, in stages (datasets, encoders, runs) whose jobs run
+side by side on an executor (`executors.py`: this process, `--jobs N` local processes,
+or a Ray cluster).
 """
 
 from __future__ import annotations

@@ -15,6 +15,7 @@ see the same machine noise; the medians are reported, and their ratio.
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import statistics
 import subprocess
@@ -28,7 +29,8 @@ from lerobot_murm.experiments.reproduce import load_reproduce_config, reproduce
 REPO = Path(__file__).parents[1]
 
 
-def sitting(config, jobs: int) -> float:
+def sitting(config, jobs: int) -> tuple[float, list[float]]:
+    """The grid's wall time and each run's median updates/s."""
     shutil.rmtree(Path(config.work_dir) / "runs", ignore_errors=True)
     shutil.rmtree(Path(config.results_dir), ignore_errors=True)
     start = time.perf_counter()
@@ -37,7 +39,9 @@ def sitting(config, jobs: int) -> float:
         reproduce(config, executor)
     finally:
         executor.close()
-    return time.perf_counter() - start
+    wall = time.perf_counter() - start
+    runs = sorted((Path(config.results_dir) / config.name / "runs").glob("*.json"))
+    return wall, [json.loads(p.read_text())["train_steps_per_s"] for p in runs]
 
 
 def main() -> None:
@@ -59,16 +63,21 @@ def main() -> None:
         config.cells[0].eval_mask_p = [0.0]
         sitting(config, 1)  # untimed: collects the dataset and trains the encoder (and warms the caches)
         times: dict[int, list[float]] = {1: [], args.jobs: []}
+        rates: dict[int, list[float]] = {1: [], args.jobs: []}
         for _ in range(args.repeats):
             for jobs in times:
-                times[jobs].append(sitting(config, jobs))
-                print(f"jobs {jobs}: {times[jobs][-1]:.1f} s")
+                wall, run_rates = sitting(config, jobs)
+                times[jobs].append(wall)
+                rates[jobs] += run_rates
+                print(f"jobs {jobs}: {wall:.1f} s, updates/s per run {run_rates}")
     model = subprocess.run("lscpu | grep 'Model name'", shell=True, capture_output=True, text=True).stdout.strip()
     print(f"\n{model}\n{args.runs} runs of {args.steps} updates, single view, batch 256; {args.repeats} sittings each")
-    print("| jobs | torch threads per run | grid wall time (median) | all sittings |\n|---:|---:|---:|---|")
+    print("| jobs | torch threads per run | grid wall time (median) | all sittings | updates/s per run (median) |")
+    print("|---:|---:|---:|---|---:|")
     for jobs, seconds in times.items():
         threads = threads_per_job(jobs) if jobs > 1 else "all"
-        print(f"| {jobs} | {threads} | {statistics.median(seconds):.1f} s | {', '.join(f'{s:.1f}' for s in seconds)} |")
+        print(f"| {jobs} | {threads} | {statistics.median(seconds):.1f} s | {', '.join(f'{s:.1f}' for s in seconds)} "
+              f"| {statistics.median(rates[jobs]):.1f} |")
     print(f"--jobs {args.jobs} over --jobs 1: {statistics.median(times[1]) / statistics.median(times[args.jobs]):.2f}x")
 
 

@@ -66,26 +66,36 @@ def ray_cluster():
     nodes = []
 
     def start(*args: str) -> None:
-        node = subprocess.Popen([str(RAY), "start", *args, f"--dashboard-agent-listen-port={_free_port()}"],
-                                env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                text=True)
-        nodes.append(node)
-        out = node.communicate(timeout=120)[0]
-        assert node.returncode == 0, out[-3000:]
+        # a raylet must register within Ray's fixed 30 s; a busy machine can miss that: try again
+        for _ in range(3):
+            node = subprocess.Popen([str(RAY), "start", *args, f"--dashboard-agent-listen-port={_free_port()}"],
+                                    env=env, start_new_session=True, stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True)
+            nodes.append(node)
+            out = node.communicate(timeout=180)[0]
+            if node.returncode == 0:
+                return
+            _stop(node)
+        raise AssertionError(f"ray start {' '.join(args)} failed 3 times:\n{out[-3000:]}")
 
     try:
         start("--head", f"--port={address.split(':')[1]}", "--num-cpus=1", f"--temp-dir={temp}", "--include-dashboard=false")
         start(f"--address={address}", "--num-cpus=2")
         yield address
     finally:
-        for sig in (signal.SIGTERM, signal.SIGKILL):
-            for node in nodes:
-                try:
-                    os.killpg(node.pid, sig)
-                except ProcessLookupError:
-                    pass
-            time.sleep(3 if sig == signal.SIGTERM else 0)
+        for node in nodes:
+            _stop(node)
         subprocess.run(["rm", "-rf", temp])
+
+
+def _stop(node: subprocess.Popen) -> None:
+    """SIGTERM, then SIGKILL, to the process group of one `ray start`: that node's processes only."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(node.pid, sig)
+        except ProcessLookupError:
+            return
+        time.sleep(3 if sig == signal.SIGTERM else 0)
 
 
 def _task_processes(name: str) -> list[int]:

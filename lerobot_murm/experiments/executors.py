@@ -50,6 +50,8 @@ class ProcessExecutor:
 
     Two trainers that each use every core slow each other down far more than 2x (thread
     oversubscription); dividing the cores between them lets their throughputs add up.
+    Each run keeps its `train.eval_envs` simulator processes: the camera-masking draws
+    depend on how evaluation episodes are batched, so resizing them would change results.
     """
 
     shard_episodes: int | None = None

@@ -38,8 +38,9 @@ def shard_ranges(episodes: int, shard_episodes: int) -> list[range]:
 
 def shard_config(config: CollectConfig, episodes: range) -> CollectConfig:
     root = config.root.with_name(f"{config.root.name}.shards") / f"{episodes.start:06d}-{episodes.stop:06d}"
-    return replace(config, root=root, first_episode=episodes.start, episodes=len(episodes), resume=root.exists(),
-                   overwrite=False)
+    # one simulator in the task's own process: a shard task asks the cluster for one CPU
+    return replace(config, root=root, first_episode=episodes.start, episodes=len(episodes), workers=1,
+                   resume=root.exists(), overwrite=False)
 
 
 def collect_shard(config: CollectConfig, episodes: range) -> Path:

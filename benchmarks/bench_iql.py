@@ -1,19 +1,22 @@
-"""IQL training speed: gradient steps/s per method, FLOP/s against a dense matmul, and
-the fast trainer against `lerobot-train`.
+"""IQL training speed: gradient steps/s per method in fp32 eager and in the default precision,
+FLOP/s against a dense matmul of the precision used, and the fast trainer against `lerobot-train`.
 
 Not a test. Run it on an otherwise idle machine:
 
-    .venv/bin/python benchmarks/bench_iql.py [--device cpu] [--repeats 5]
+    .venv/bin/python benchmarks/bench_iql.py [--device cpu] [--repeats 5] [--widths both]
     .venv/bin/python benchmarks/bench_iql.py --lerobot-train DATASET_DIR ENCODER_DIR
 
 Speed does not depend on the latents' content, so the replay holds random codebook
 indices (100,000 frames, 1,000 episodes). A step is what `murm train` does: sample a
 batch from the replay, `policy.forward`, backward, optimizer step, `policy.update()`.
+Each case runs fp32 and the default (`precision: auto`) in alternating blocks on the same
+policy (ABAB...), and the medians are compared, so machine noise hits both alike.
 """
 
 from __future__ import annotations
 
 import argparse
+import platform
 import re
 import statistics
 import subprocess
@@ -30,6 +33,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
 from lerobot_murm.policy.modeling_murm import MurmPolicy
+from lerobot_murm.policy.precision import resolve_precision
 from lerobot_murm.policy.replay import LatentReplay
 from lerobot_murm.policy.train import transition_batch
 from lerobot_murm.vqvae import VQVAEConfig
@@ -37,6 +41,15 @@ from lerobot_murm.vqvae.latent_cache import LatentCache
 
 CASES = [("single", 1), ("concat", 2), ("dropout", 2), ("separated_q", 2), ("dropout", 3), ("separated_q", 3)]
 CAMERAS = ["global", "adjacent", "side"]
+PRECISIONS = {"fp32": "fp32", "default": "auto"}  # label -> MurmConfig.precision
+UNITS = 128
+
+
+def hidden_sizes(method: str, n_cameras: int, widths: str) -> dict[str, int]:
+    """`fixed`: 128 units everywhere; `per_camera`: 128 per camera (V, policy and a whole-state
+    Q grow with the cameras; each separated-Q head sees one camera and keeps 128)."""
+    wide = UNITS * n_cameras if widths == "per_camera" else UNITS
+    return {"q_hidden": UNITS if method == "separated_q" else wide, "v_hidden": wide, "policy_hidden": wide}
 
 
 def synthetic_cache(camera: str, frames: int = 100_000, episodes: int = 1_000, seed: int = 0) -> LatentCache:
@@ -53,17 +66,17 @@ def synthetic_cache(camera: str, frames: int = 100_000, episodes: int = 1_000, s
     )
 
 
-def make_policy(method: str, cameras: list[str], device: torch.device) -> MurmPolicy:
+def make_policy(method: str, cameras: list[str], device: torch.device, **fields) -> MurmPolicy:
     encoders = {c: asdict(VQVAEConfig(camera=c)) for c in cameras}
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 48, 48))
-    config = MurmConfig(method=method, cameras=cameras, encoders=encoders, epsilon=[2.0] * len(cameras))
+    config = MurmConfig(method=method, cameras=cameras, encoders=encoders, epsilon=[2.0] * len(cameras), **fields)
     config.input_features = {k: image for c in cameras for k in (image_feature_key(c), goal_feature_key(c))}
     config.output_features = {"action": PolicyFeature(type=FeatureType.ACTION, shape=(4,))}
     return MurmPolicy(config).to(device)
 
 
-def matmul_gflops(device: torch.device, n: int = 2048, repeats: int = 20) -> float:
-    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
+def matmul_gflops(device: torch.device, dtype: torch.dtype = torch.float32, n: int = 2048, repeats: int = 20) -> float:
+    a, b = torch.randn(n, n, device=device, dtype=dtype), torch.randn(n, n, device=device, dtype=dtype)
     a @ b
     rates = []
     for _ in range(repeats):
@@ -80,9 +93,11 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def measure(method: str, n_cameras: int, batch: int, device: torch.device, steps: int, repeats: int) -> dict:
+def measure(method: str, n_cameras: int, widths: str, batch: int, device: torch.device, steps: int,
+            repeats: int) -> dict:
+    """Per precision label: steps/s (sampling included), update ms on a fixed batch, sample ms."""
     cameras = CAMERAS[:n_cameras]
-    policy = make_policy(method, cameras, device).train()
+    policy = make_policy(method, cameras, device, **hidden_sizes(method, n_cameras, widths)).train()
     caches = [synthetic_cache(c, seed=i) for i, c in enumerate(cameras)]
     actions = np.random.default_rng(0).uniform(-1, 1, (len(caches[0].indices), 4)).astype(np.float32)
     replay = LatentReplay(caches, actions, policy.config.epsilon, policy.config.her_ratio, device=device)
@@ -100,22 +115,40 @@ def measure(method: str, n_cameras: int, batch: int, device: torch.device, steps
     with FlopCounterMode(display=False) as counter:
         update(transitions)
     flops = counter.get_total_flops()
-    step_times, update_times = [], []
-    for _ in range(repeats):
-        _sync(device)
-        start = time.perf_counter()
-        for _ in range(steps):
-            update(transition_batch(replay, batch, generator))
-        _sync(device)
-        step_times.append((time.perf_counter() - start) / steps)
-        start = time.perf_counter()
-        for _ in range(steps):
-            update(transitions)
-        _sync(device)
-        update_times.append((time.perf_counter() - start) / steps)
-    step_s, update_s = statistics.median(step_times), statistics.median(update_times)
-    return {"method": method, "cameras": n_cameras, "steps_per_s": 1 / step_s, "update_ms": 1e3 * update_s,
-            "sample_ms": 1e3 * (step_s - update_s), "gflop": flops / 1e9, "gflops": flops / update_s / 1e9}
+    step_times = {label: [] for label in PRECISIONS}
+    update_times = {label: [] for label in PRECISIONS}
+    for repeat in range(repeats + 1):  # the first round warms both precisions up and is not counted
+        for label, precision in PRECISIONS.items():
+            policy.config.precision = precision
+            _sync(device)
+            start = time.perf_counter()
+            for _ in range(steps):
+                update(transition_batch(replay, batch, generator))
+            _sync(device)
+            step_s = (time.perf_counter() - start) / steps
+            start = time.perf_counter()
+            for _ in range(steps):
+                update(transitions)
+            _sync(device)
+            if repeat:
+                step_times[label].append(step_s)
+                update_times[label].append((time.perf_counter() - start) / steps)
+    result = {"method": method, "cameras": n_cameras, "widths": widths, "gflop": flops / 1e9,
+              "hidden": hidden_sizes(method, n_cameras, widths)}
+    for label in PRECISIONS:
+        step_s, update_s = statistics.median(step_times[label]), statistics.median(update_times[label])
+        result[label] = {"steps_per_s": 1 / step_s, "update_ms": 1e3 * update_s, "sample_ms": 1e3 * (step_s - update_s),
+                         "gflops": flops / update_s / 1e9}
+    result["speedup"] = result["default"]["steps_per_s"] / result["fp32"]["steps_per_s"]
+    return result
+
+
+def cpu_model() -> str:
+    try:
+        lscpu = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        return next(line for line in lscpu.splitlines() if line.startswith("Model name")).split(":", 1)[1].strip()
+    except (OSError, subprocess.CalledProcessError, StopIteration):
+        return platform.processor() or "unknown"
 
 
 def lerobot_train_steps_per_s(dataset: str, encoder_dir: str, batch: int, steps: int = 12) -> float:
@@ -137,29 +170,56 @@ def lerobot_train_steps_per_s(dataset: str, encoder_dir: str, batch: int, steps:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--batch-size", type=int, default=256)
-    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--widths", choices=["fixed", "per_camera", "both"], default="both",
+                        help="fixed: 128 units everywhere; per_camera: 128 units per camera")
+    parser.add_argument("--cases", nargs="*", default=None, metavar="METHOD:CAMERAS",
+                        help="e.g. separated_q:2 (default: all six)")
     parser.add_argument("--lerobot-train", nargs=2, metavar=("DATASET_DIR", "ENCODER_DIR"))
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    peak_before = matmul_gflops(device)
-    results = {case: measure(*case, args.batch_size, device, args.steps, args.repeats) for case in CASES}
-    peak = max(peak_before, matmul_gflops(device))  # the better of two measurements: the stricter ratio
-    print(f"device {device}, torch threads {torch.get_num_threads()}, batch {args.batch_size}")
-    print(f"dense fp32 matmul (2048^3): {peak:.0f} GFLOP/s (before the runs {peak_before:.0f})\n")
-    print("| method | cameras | steps/s | update ms | sample ms | GFLOP/update | GFLOP/s | % of matmul |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
-    for (method, n), r in results.items():
-        print(f"| {method} | {n} | {r['steps_per_s']:.0f} | {r['update_ms']:.1f} | {r['sample_ms']:.1f} | "
-              f"{r['gflop']:.2f} | {r['gflops']:.0f} | {100 * r['gflops'] / peak:.0f} % |")
-    single = results[("single", 1)]["steps_per_s"]
-    print("\ntime per step relative to single-view (paper Table 5: dropout 1.05, separated Q 1.55):")
-    for method, n in CASES[1:]:
-        print(f"  {method} with {n} cameras: {single / results[(method, n)]['steps_per_s']:.2f}")
+    cases = [(m, int(n)) for m, n in (c.split(":") for c in args.cases)] if args.cases else CASES
+    widths = ["fixed", "per_camera"] if args.widths == "both" else [args.widths]
+    default_dtype = resolve_precision("auto", device)
+    dtypes = {"fp32": torch.float32, "default": default_dtype}
+    peak_before = {label: matmul_gflops(device, dtype) for label, dtype in dtypes.items()}
+    results = [measure(m, n, w, args.batch_size, device, args.steps, args.repeats)
+               for w in widths for m, n in cases if not (w == "per_camera" and n == 1 and "fixed" in widths)]
+    # the better of two measurements: the stricter ratio
+    peak = {label: max(peak_before[label], matmul_gflops(device, dtype)) for label, dtype in dtypes.items()}
+    print(f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
+          f"batch {args.batch_size}, default precision {str(default_dtype).removeprefix('torch.')}")
+    print(f"dense 2048^3 matmul: fp32 {peak['fp32']:.0f} GFLOP/s, default {peak['default']:.0f} GFLOP/s "
+          f"(before the runs {peak_before['fp32']:.0f} / {peak_before['default']:.0f})\n")
+    print("| method | cameras | hidden (Q/V/policy) | fp32 steps/s | default steps/s | speedup | "
+          "update ms fp32 / default | sample ms | GFLOP/update | % of fp32 peak, fp32 | % of default peak, default |")
+    print("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in results:
+        h, f, d = r["hidden"], r["fp32"], r["default"]
+        print(f"| {r['method']} | {r['cameras']} | {h['q_hidden']}/{h['v_hidden']}/{h['policy_hidden']} | "
+              f"{f['steps_per_s']:.1f} | {d['steps_per_s']:.1f} | {r['speedup']:.2f}x | "
+              f"{f['update_ms']:.1f} / {d['update_ms']:.1f} | {d['sample_ms']:.1f} | {r['gflop']:.2f} | "
+              f"{100 * f['gflops'] / peak['fp32']:.0f} % | {100 * d['gflops'] / peak['default']:.0f} % |")
+    two = [r["speedup"] for r in results if r["cameras"] == 2]
+    if two:  # the smallest over the two-camera cases: the claim holds for every method and width
+        print(f"\nspeedup over fp32 eager, two cameras: {min(two):.2f} (smallest of {len(two)} cases; "
+              f"median {statistics.median(two):.2f})")
+    by_case = {(r["method"], r["cameras"]): r for r in results if r["widths"] == widths[0]}
+    if ("single", 1) in by_case:
+        single = by_case[("single", 1)]["default"]["steps_per_s"]
+        print(f"\ntime per step relative to single-view, {widths[0]} widths, default precision "
+              "(paper Table 5: dropout 1.05, separated Q 1.55):")
+        for (method, n), r in by_case.items():
+            if n > 1:
+                print(f"  {method} with {n} cameras: {single / r['default']['steps_per_s']:.2f}")
     if args.lerobot_train:
         slow = lerobot_train_steps_per_s(*args.lerobot_train, batch=args.batch_size)
-        fast = results[("separated_q", 2)]["steps_per_s"]
+        fast = by_case[("separated_q", 2)]["default"]["steps_per_s"]
         print(f"\nseparated_q, 2 cameras: murm train {fast:.1f} steps/s, lerobot-train {slow:.2f} steps/s "
               f"-> {fast / slow:.0f}x")
 

@@ -17,6 +17,7 @@ import torch
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig, OptimizerConfig
 
+from lerobot_murm.policy.precision import PRECISIONS
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
 
 METHODS = ("single", "concat", "dropout", "separated_q")
@@ -112,6 +113,11 @@ class MurmConfig(PreTrainedConfig):
     # lerobot-train reads frames t, t+1 and these later frames as hindsight goal candidates
     # (the fast trainer draws any later frame of the episode)
     her_offsets: list[int] = field(default_factory=lambda: [2, 5, 10, 20, 50])
+    # matmuls of the training losses in "bf16" (parameters, optimizer state, output layers and
+    # losses stay fp32) or "fp32"; "auto": bf16 on CUDA and on CPUs with native bf16
+    # (avx512_bf16/amx_bf16), fp32 elsewhere (policy/precision.py). Not named `dtype`: that
+    # field would make lerobot-train wrap forward in accelerate's autocast as well
+    precision: str = "auto"
 
     # evaluation (Table 4): each step, each camera's image is dropped with this probability
     eval_mask_p: float = 0.0
@@ -147,6 +153,8 @@ class MurmConfig(PreTrainedConfig):
             self.view_dropout = self.method == "dropout"
         if self.view_dropout and self.method in ("single", "concat"):
             raise ValueError(f"view_dropout applies to 'dropout' and 'separated_q', not {self.method!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"unknown precision {self.precision!r}; choose one of {list(PRECISIONS)}")
         if self.dropout_scope not in DROPOUT_SCOPES:
             raise ValueError(f"unknown dropout_scope {self.dropout_scope!r}; choose one of {list(DROPOUT_SCOPES)}")
         if self.dropped_q not in DROPPED_Q_MODES:

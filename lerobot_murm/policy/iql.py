@@ -24,6 +24,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from lerobot_murm.policy.precision import fp32_output
+
 
 def sparse_reward(z: torch.Tensor, z_goal: torch.Tensor, epsilons: torch.Tensor) -> torch.Tensor:
     """Eq. 4-5. z, z_goal: (B, cameras, latent); epsilons: (cameras,). Returns (B,) in [-cameras, 0]."""
@@ -61,8 +63,14 @@ def mlp(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
     modules: list[nn.Module] = []
     for i in range(layers):
         modules += [nn.Linear(in_dim if i == 0 else hidden, hidden), nn.ReLU()]
-    modules.append(nn.Linear(hidden, out_dim))
+    modules.append(OutputLinear(hidden, out_dim))
     return nn.Sequential(*modules)
+
+
+class OutputLinear(nn.Linear):
+    """A network's last layer: float32 under mixed precision (see `fp32_output`)."""
+
+    forward = fp32_output(nn.Linear.forward)
 
 
 class EnsembleLinear(nn.Module):
@@ -76,6 +84,12 @@ class EnsembleLinear(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.baddbmm(self.bias, x, self.weight)
+
+
+class EnsembleOutput(EnsembleLinear):
+    """An ensemble's last layer: float32 under mixed precision (see `fp32_output`)."""
+
+    forward = fp32_output(EnsembleLinear.forward)
 
 
 class DoubleQ(nn.Module):
@@ -92,13 +106,13 @@ class DoubleQ(nn.Module):
         self.groups, self.hidden = groups, hidden
         self.first = EnsembleLinear(groups, group_dim + action_dim, 2 * hidden)
         self.body = nn.ModuleList(EnsembleLinear(2 * groups, hidden, hidden) for _ in range(layers - 1))
-        self.out = EnsembleLinear(2 * groups, hidden, 1)
+        self.out = EnsembleOutput(2 * groups, hidden, 1)
 
     def forward(self, state: torch.Tensor, action: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
         """state: (B, groups, group_dim); keep: optional (B, groups) bool, the heads each row
         averages over (all when None). Returns (2, B): the two sets' averaged Q values."""
         batch = state.shape[0]
-        x = torch.cat([state, action.unsqueeze(1).expand(-1, self.groups, -1)], dim=-1).transpose(0, 1)
+        x = torch.cat([state, action.to(state.dtype).unsqueeze(1).expand(-1, self.groups, -1)], dim=-1).transpose(0, 1)
         h = torch.relu(self.first(x))  # (groups, B, 2 * hidden): both sets at once
         h = h.view(self.groups, batch, 2, self.hidden).permute(2, 0, 1, 3).reshape(2 * self.groups, batch, self.hidden)
         for layer in self.body:

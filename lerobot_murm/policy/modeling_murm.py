@@ -28,6 +28,7 @@ from lerobot_murm.policy.iql import (
     polyak_update,
     sparse_reward,
 )
+from lerobot_murm.policy.precision import compute_dtype, matmul_precision, resolve_precision
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 # keys of a latent transition batch (what the fast trainer's sampler returns)
@@ -98,8 +99,11 @@ class MurmPolicy(PreTrainedPolicy):
         return latents
 
     def normalize(self, state: Tensor) -> Tensor:
-        """Standardise (B, cameras, 2 * latent) states; z and z_goal share their camera's statistics."""
-        return (state - self.latent_mean.repeat(1, 2)) / self.latent_std.repeat(1, 2)
+        """Standardise (B, cameras, 2 * latent) states; z and z_goal share their camera's statistics.
+        One fused multiply-add over the batch: a subtraction and a division each allocated a
+        batch-sized temporary, and their page faults cost more than the arithmetic (BENCHMARKS.md)."""
+        scale = self.latent_std.reciprocal().repeat(1, 2)
+        return torch.addcmul(-self.latent_mean.repeat(1, 2) * scale, state, scale)
 
     def load_encoders(self) -> None:
         """Copy the trained VQ-VAE weights from `config.encoder_dir` into the policy."""
@@ -185,7 +189,9 @@ class MurmPolicy(PreTrainedPolicy):
     # --- learning --------------------------------------------------------------------------
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         transition = batch if STATE in batch else self.transition_from_frames(batch)
-        return self.iql_loss(transition)
+        device = transition[STATE].device
+        with matmul_precision(resolve_precision(self.config.precision, device), device):
+            return self.iql_loss(transition)
 
     @torch.no_grad()
     def transition_from_frames(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
@@ -216,7 +222,8 @@ class MurmPolicy(PreTrainedPolicy):
 
     def iql_loss(self, transition: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         c = self.config
-        state, next_state = self.normalize(transition[STATE]), self.normalize(transition[NEXT_STATE])
+        dtype = compute_dtype(transition[STATE].device)  # the networks' inputs, cast once for all of them
+        state, next_state = self.normalize(transition[STATE]).to(dtype), self.normalize(transition[NEXT_STATE]).to(dtype)
         action = transition[ACTION]
         actor_state, q_heads = state, None
         critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)

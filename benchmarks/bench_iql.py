@@ -42,14 +42,9 @@ from lerobot_murm.vqvae.latent_cache import LatentCache
 CASES = [("single", 1), ("concat", 2), ("dropout", 2), ("separated_q", 2), ("dropout", 3), ("separated_q", 3)]
 CAMERAS = ["global", "adjacent", "side"]
 PRECISIONS = {"fp32": "fp32", "default": "auto"}  # label -> MurmConfig.precision
-UNITS = 128
-
-
-def hidden_sizes(method: str, n_cameras: int, widths: str) -> dict[str, int]:
-    """`fixed`: 128 units everywhere; `per_camera`: 128 per camera (V, policy and a whole-state
-    Q grow with the cameras; each separated-Q head sees one camera and keeps 128)."""
-    wide = UNITS * n_cameras if widths == "per_camera" else UNITS
-    return {"q_hidden": UNITS if method == "separated_q" else wide, "v_hidden": wide, "policy_hidden": wide}
+# `per_camera`: 128 units per camera for V, the policy and a whole-state Q, 128 per separated-Q
+# head (the default); `fixed`: 128 everywhere (the widths before the per-camera rule)
+WIDTHS = {"per_camera": True, "fixed": False}  # label -> MurmConfig.width_per_camera
 
 
 def synthetic_cache(camera: str, frames: int = 100_000, episodes: int = 1_000, seed: int = 0) -> LatentCache:
@@ -75,7 +70,7 @@ def make_policy(method: str, cameras: list[str], device: torch.device, **fields)
     return MurmPolicy(config).to(device)
 
 
-def matmul_gflops(device: torch.device, dtype: torch.dtype = torch.float32, n: int = 2048, repeats: int = 20) -> float:
+def matmul_gflops(device: torch.device, dtype: torch.dtype = torch.float32, n: int = 2048, repeats: int = 7) -> float:
     a, b = torch.randn(n, n, device=device, dtype=dtype), torch.randn(n, n, device=device, dtype=dtype)
     a @ b
     rates = []
@@ -97,7 +92,7 @@ def measure(method: str, n_cameras: int, widths: str, batch: int, device: torch.
             repeats: int) -> dict:
     """Per precision label: steps/s (sampling included), update ms on a fixed batch, sample ms."""
     cameras = CAMERAS[:n_cameras]
-    policy = make_policy(method, cameras, device, **hidden_sizes(method, n_cameras, widths)).train()
+    policy = make_policy(method, cameras, device, width_per_camera=WIDTHS[widths]).train()
     caches = [synthetic_cache(c, seed=i) for i, c in enumerate(cameras)]
     actions = np.random.default_rng(0).uniform(-1, 1, (len(caches[0].indices), 4)).astype(np.float32)
     replay = LatentReplay(caches, actions, policy.config.epsilon, policy.config.her_ratio, device=device)
@@ -135,8 +130,9 @@ def measure(method: str, n_cameras: int, widths: str, batch: int, device: torch.
                 step_times[label].append(step_s)
                 cpu_times[label].append(cpu_s)
                 update_times[label].append((time.perf_counter() - start) / steps)
-    result = {"method": method, "cameras": n_cameras, "widths": widths, "gflop": flops / 1e9,
-              "hidden": hidden_sizes(method, n_cameras, widths)}
+    c = policy.config
+    hidden = f"{c.hidden_units if method == 'separated_q' else c.shared_width}/{c.shared_width}/{c.shared_width}"
+    result = {"method": method, "cameras": n_cameras, "widths": widths, "gflop": flops / 1e9, "hidden": hidden}
     for label in PRECISIONS:
         step_s, update_s = statistics.median(step_times[label]), statistics.median(update_times[label])
         result[label] = {"steps_per_s": 1 / step_s, "update_ms": 1e3 * update_s, "sample_ms": 1e3 * (step_s - update_s),
@@ -177,8 +173,8 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=256)
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--widths", choices=["fixed", "per_camera", "both"], default="both",
-                        help="fixed: 128 units everywhere; per_camera: 128 units per camera")
+    parser.add_argument("--widths", choices=[*WIDTHS, "both"], default="both",
+                        help="per_camera: 128 units per camera (the default); fixed: 128 units everywhere")
     parser.add_argument("--cases", nargs="*", default=None, metavar="METHOD:CAMERAS",
                         help="e.g. separated_q:2 (default: all six)")
     parser.add_argument("--lerobot-train", nargs=2, metavar=("DATASET_DIR", "ENCODER_DIR"))
@@ -187,12 +183,12 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     cases = [(m, int(n)) for m, n in (c.split(":") for c in args.cases)] if args.cases else CASES
-    widths = ["fixed", "per_camera"] if args.widths == "both" else [args.widths]
+    widths = list(WIDTHS) if args.widths == "both" else [args.widths]
     default_dtype = resolve_precision("auto", device)
     dtypes = {"fp32": torch.float32, "default": default_dtype}
     peak_before = {label: matmul_gflops(device, dtype) for label, dtype in dtypes.items()}
     results = [measure(m, n, w, args.batch_size, device, args.steps, args.repeats)
-               for w in widths for m, n in cases if not (w == "per_camera" and n == 1 and "fixed" in widths)]
+               for w in widths for m, n in cases if not (w == "fixed" and n == 1 and len(widths) > 1)]  # same at 1 camera
     # the better of two measurements: the stricter ratio
     peak = {label: max(peak_before[label], matmul_gflops(device, dtype)) for label, dtype in dtypes.items()}
     print(f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
@@ -204,8 +200,8 @@ def main() -> None:
           "CPU ms/step fp32 / default | CPU-time speedup |")
     print("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in results:
-        h, f, d = r["hidden"], r["fp32"], r["default"]
-        print(f"| {r['method']} | {r['cameras']} | {h['q_hidden']}/{h['v_hidden']}/{h['policy_hidden']} | "
+        f, d = r["fp32"], r["default"]
+        print(f"| {r['method']} | {r['cameras']} | {r['hidden']} | "
               f"{f['steps_per_s']:.1f} | {d['steps_per_s']:.1f} | {r['speedup']:.2f}x | "
               f"{f['update_ms']:.1f} / {d['update_ms']:.1f} | {d['sample_ms']:.1f} | {r['gflop']:.2f} | "
               f"{100 * f['gflops'] / peak['fp32']:.0f} % | {100 * d['gflops'] / peak['default']:.0f} % | "

@@ -36,6 +36,7 @@ from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import validation_curve
+from lerobot_murm.policy.precision import resolve_precision
 from lerobot_murm.policy.train import TrainConfig, train
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
@@ -128,6 +129,8 @@ def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) ->
         "task": task, "dataset": dataset_root(config, task, cell).name, "method": cell.method,
         "cameras": list(cell.cameras), "epsilon": cell.epsilon, "policy": dict(cell.policy),
         "vqvae": asdict(config.vqvae), "train": asdict(config.train), "seed": seed,
+        # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
+        "precision": str(resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))),
     }))
 
 

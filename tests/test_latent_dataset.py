@@ -147,7 +147,29 @@ def test_lerobot_train_under_accelerate_with_two_processes_saves_a_checkpoint(ti
                "--mixed_precision", "no", "--dynamo_backend", "no", BIN / "lerobot-train", *TRAIN_ARGS,
                f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}", "--steps=3", "--save_freq=3",
                "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)
-    assert "Effective batch size: 16 x 2 = 32" in log
+    assert "critic_loss" in log
     checkpoint = tmp_path / "run" / "checkpoints" / "000003"
     assert (checkpoint / "pretrained_model" / "model.safetensors").exists()
-    assert (checkpoint / "training_state" / "training_step.json").exists()
+    state = json.loads((checkpoint / "training_state" / "training_step.json").read_text())
+    assert state == {"step": 3, "num_processes": 2, "batch_size": 16}  # two ranks, 16 rows each
+
+
+def test_push_uploads_the_latent_dataset_with_its_card_and_pull_gets_it_back(latents, hub, tmp_path):
+    card = push_dataset(latents, "tester/murm_latents")
+    files = hub.files("tester/murm_latents")
+    assert {"meta/info.json", "meta/murm_latents.json", "README.md"} <= set(files)
+    readme = files["README.md"].decode()
+    assert card in readme
+    description = json.loads((latents / "meta/murm_latents.json").read_text())
+    for fact in ("local/place_in_box", "`observation.latent.adjacent_goal`", "murm train-vqvae",
+                 description["cameras"]["global"]["encoder_fingerprint"], "murm encode --dataset"):
+        assert fact in readme, fact
+
+    pulled = pull_dataset("tester/murm_latents", tmp_path / "pulled")
+    original = LeRobotDataset(LATENT_REPO, root=latents)
+    assert len(pulled) == len(original) == 600
+    for i in (0, 250, 599):
+        assert torch.equal(pulled[i][latent_key("global")], original[i][latent_key("global")])
+    for a, b in zip(read_latent_caches(pulled, CAMERAS), read_latent_caches(original, CAMERAS), strict=True):
+        np.testing.assert_array_equal(a.latents(), b.latents())
+        np.testing.assert_array_equal(a.goal_latents(), b.goal_latents())

@@ -1,7 +1,8 @@
 """Latent datasets: demonstrations whose camera streams are replaced by the frozen VQ-VAEs' codes.
 
 A latent dataset is an ordinary LeRobotDataset (v3): the source's actions, rewards, robot
-state and episodes, and per chosen camera `observation.latent.<camera>` and
+state and episodes (not the privileged object/goal state, which no policy may see), and per
+chosen camera `observation.latent.<camera>` and
 `observation.latent.<camera>_goal`, the codebook indices of the frame and of the episode's
 goal image (int16, grid x grid row-major), with no image streams. Indices rather than the
 720 floats they stand for: a latent is a lookup in the encoder's codebook (bit-identical
@@ -29,6 +30,7 @@ from lerobot_murm.vqvae.latent_cache import LatentCache, encoder_fingerprint
 
 LATENTS_FILE = "meta/murm_latents.json"
 CODE_DTYPE = "int16"
+PRIVILEGED_STATE = "observation.environment_state"  # object and goal positions, for the scripted expert
 
 
 def latent_key(camera: str) -> str:
@@ -64,8 +66,11 @@ def write_latent_dataset(
         goals = cache.goal_indices.reshape(len(cache.goal_indices), -1).astype(CODE_DTYPE)[episode_index]
         added[latent_key(cache.camera)] = (frames, codes)
         added[latent_goal_key(cache.camera)] = (goals, codes)
-    latent = modify_features(dataset, add_features=added, remove_features=list(dataset.meta.camera_keys),
-                             output_dir=out, repo_id=repo_id)
+    # every column costs LeRobot's loader time per row: keep only what a policy may use
+    removed = list(dataset.meta.camera_keys)
+    if PRIVILEGED_STATE in dataset.meta.features:
+        removed.append(PRIVILEGED_STATE)
+    latent = modify_features(dataset, add_features=added, remove_features=removed, output_dir=out, repo_id=repo_id)
     description = {
         "source": {"repo_id": dataset.repo_id, "fingerprint": dataset_fingerprint(dataset)},
         "command": command,

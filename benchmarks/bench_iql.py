@@ -164,10 +164,10 @@ def fast_steps_per_s(policy: MurmPolicy, replay: LatentReplay, batch: int, steps
     return steps / (time.perf_counter() - start)
 
 
-def lerobot_train_steps_per_s(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
-                              num_workers: int) -> float:
-    """Stock `lerobot-train --policy.type=murm` on the latent dataset: steps/s from its own logged
-    update + data-wait times, without the first window (the data loader's start)."""
+def lerobot_train_step_times(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
+                             num_workers: int) -> tuple[float, float]:
+    """Stock `lerobot-train --policy.type=murm` on the latent dataset: its own logged update and
+    data-wait seconds per step (medians over its log windows, without the first: the loader's start)."""
     with tempfile.TemporaryDirectory() as out:
         command = [
             str(Path(sys.executable).parent / "lerobot-train"), "--policy.type=murm", "--policy.method=separated_q",
@@ -178,8 +178,8 @@ def lerobot_train_steps_per_s(latents: Path, encoder_dir: Path, cameras: list[st
         ]
         done = subprocess.run(command, capture_output=True, text=True, check=True)
         log = done.stdout + done.stderr
-    times = [float(u) + float(d) for u, d in re.findall(r"updt_s:([\d.]+) data_s:([\d.]+)", log)]
-    return 1 / statistics.median(times[1:])
+    windows = re.findall(r"updt_s:([\d.]+) data_s:([\d.]+)", log)[1:]
+    return statistics.median(float(u) for u, _ in windows), statistics.median(float(d) for _, d in windows)
 
 
 def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 150, episodes: int = 1000) -> None:
@@ -193,9 +193,11 @@ def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 15
         replay = replay_for_dataset(config, LeRobotDataset("local/latents", root=latents), None)
         fast, slow = [], []
         for _ in range(repeats):
-            fast.append(fast_steps_per_s(policy, replay, batch, steps=steps))
-            slow.append(lerobot_train_steps_per_s(latents, encoder_dir, cameras, batch, steps, num_workers))
-            print(f"  murm train {fast[-1]:.1f} steps/s, lerobot-train {slow[-1]:.1f} steps/s", flush=True)
+            fast.append(fast_steps_per_s(policy, replay, batch, steps))
+            update_s, data_s = lerobot_train_step_times(latents, encoder_dir, cameras, batch, steps, num_workers)
+            slow.append(1 / (update_s + data_s))
+            print(f"  murm train {fast[-1]:.1f} steps/s; lerobot-train {slow[-1]:.1f} steps/s "
+                  f"(update {1e3 * update_s:.0f} ms + waiting for data {1e3 * data_s:.0f} ms a step)", flush=True)
     f, s = statistics.median(fast), statistics.median(slow)
     print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, lerobot-train --num_workers={num_workers}: "
           f"murm train {f:.1f} steps/s, lerobot-train {s:.1f} steps/s")

@@ -56,6 +56,7 @@ def test_the_latent_dataset_is_a_lerobot_dataset_of_the_encoders_codes_without_i
     source = LeRobotDataset("local/place_in_box", root=root)
     dataset = LeRobotDataset(LATENT_REPO, root=latents)
     assert dataset.meta.camera_keys == [] and not list(latents.rglob("*.png"))
+    assert "observation.state" in dataset.meta.features and "observation.environment_state" not in dataset.meta.features
     assert len(dataset) == len(source) and dataset.meta.total_episodes == source.meta.total_episodes
     for camera in CAMERAS:
         cache = build_latent_cache("local/place_in_box", root, encoders / camera, latents.parent / "cache")

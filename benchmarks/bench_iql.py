@@ -17,7 +17,7 @@ and the stock `lerobot-train --policy.type=murm` on it, alternately.
 from __future__ import annotations
 
 import argparse
-import re
+import resource
 import statistics
 import subprocess
 import sys
@@ -150,40 +150,42 @@ def write_random_latent_dataset(folder: Path, cameras: list[str], episodes: int,
     return folder / "latents"
 
 
-def fast_steps_per_s(policy: MurmPolicy, replay: LatentReplay, batch: int, steps: int) -> float:
-    """`murm train`'s loop (sample, forward, backward, Adam, Polyak) on `replay`."""
+def fast_cpu_s_per_step(policy: MurmPolicy, replay: LatentReplay, batch: int, steps: int) -> float:
+    """`murm train`'s loop (sample, forward, backward, Adam, Polyak) on `replay`: CPU seconds a step."""
     optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
     generator = torch.Generator().manual_seed(0)
-    start = time.perf_counter()
+    start = time.process_time()
     for _ in range(steps):
         loss, _ = policy.forward(transition_batch(replay, batch, generator))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         policy.update()
-    return steps / (time.perf_counter() - start)
+    return (time.process_time() - start) / steps
 
 
-def lerobot_train_step_times(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
-                             num_workers: int) -> tuple[float, float]:
-    """Stock `lerobot-train --policy.type=murm` on the latent dataset: its own logged update and
-    data-wait seconds per step (medians over its log windows, without the first: the loader's start)."""
+def lerobot_train_cpu_s(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
+                        num_workers: int) -> float:
+    """CPU seconds of a whole stock `lerobot-train --policy.type=murm` run on the latent dataset,
+    its data-loader workers included."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     with tempfile.TemporaryDirectory() as out:
-        command = [
+        subprocess.run([
             str(Path(sys.executable).parent / "lerobot-train"), "--policy.type=murm", "--policy.method=separated_q",
             f"--policy.cameras=[{','.join(cameras)}]", f"--policy.encoder_dir={encoder_dir}", "--policy.epsilon=[2.0,2.0]",
             "--dataset.repo_id=local/latents", f"--dataset.root={latents}", f"--batch_size={batch}", f"--steps={steps}",
-            f"--log_freq={steps // 5}", "--save_checkpoint=false", f"--num_workers={num_workers}",
-            f"--output_dir={out}/run", "--wandb.enable=false",
-        ]
-        done = subprocess.run(command, capture_output=True, text=True, check=True)
-        log = done.stdout + done.stderr
-    windows = re.findall(r"updt_s:([\d.]+) data_s:([\d.]+)", log)[1:]
-    return statistics.median(float(u) for u, _ in windows), statistics.median(float(d) for _, d in windows)
+            "--save_checkpoint=false", f"--num_workers={num_workers}", f"--output_dir={out}/run", "--wandb.enable=false",
+        ], capture_output=True, check=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
 
 def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 150, episodes: int = 1000) -> None:
-    """murm train and lerobot-train alternately on one latent dataset (separated Q, two cameras)."""
+    """CPU time per update of murm train and of lerobot-train, alternately, on one latent dataset
+    (separated Q, two cameras). lerobot-train's per-step time is the difference between a run of
+    `steps` + 10 and one of 10 updates, so its start (imports, loading the dataset) cancels out.
+    CPU time, not wall time: it does not depend on what else the machine runs, and on a machine
+    whose cores are busy (2 here) updates/s is inversely proportional to it."""
     cameras = CAMERAS[:2]
     with tempfile.TemporaryDirectory() as folder:
         latents = write_random_latent_dataset(Path(folder), cameras, episodes)
@@ -193,15 +195,16 @@ def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 15
         replay = replay_for_dataset(config, LeRobotDataset("local/latents", root=latents), None)
         fast, slow = [], []
         for _ in range(repeats):
-            fast.append(fast_steps_per_s(policy, replay, batch, steps))
-            update_s, data_s = lerobot_train_step_times(latents, encoder_dir, cameras, batch, steps, num_workers)
-            slow.append(1 / (update_s + data_s))
-            print(f"  murm train {fast[-1]:.1f} steps/s; lerobot-train {slow[-1]:.1f} steps/s "
-                  f"(update {1e3 * update_s:.0f} ms + waiting for data {1e3 * data_s:.0f} ms a step)", flush=True)
+            fast.append(fast_cpu_s_per_step(policy, replay, batch, steps))
+            short = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, 10, num_workers)
+            long = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, steps + 10, num_workers)
+            slow.append((long - short) / steps)
+            print(f"  CPU ms per update: murm train {1e3 * fast[-1]:.1f}, lerobot-train {1e3 * slow[-1]:.1f} "
+                  f"(its start: {short:.1f} s)", flush=True)
     f, s = statistics.median(fast), statistics.median(slow)
     print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, lerobot-train --num_workers={num_workers}: "
-          f"murm train {f:.1f} steps/s, lerobot-train {s:.1f} steps/s")
-    print(f"lerobot-train / murm train: {s / f:.2f}")
+          f"CPU ms per update: murm train {1e3 * f:.1f}, lerobot-train {1e3 * s:.1f}")
+    print(f"lerobot-train / murm train: {f / s:.2f}")
 
 
 def main() -> None:

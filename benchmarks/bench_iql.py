@@ -1,23 +1,27 @@
 """IQL training speed: gradient steps/s per method in fp32 eager and in the default precision,
-FLOP/s against a dense matmul of the precision used, and the fast trainer against `lerobot-train`.
+FLOP/s against a dense matmul of the precision used, and the fast trainer against
+`lerobot-train` on the same latent dataset.
 
 Not a test. Run it on an otherwise idle machine:
 
     .venv/bin/python benchmarks/bench_iql.py [--device cpu] [--repeats 5] [--widths both]
-    .venv/bin/python benchmarks/bench_iql.py --lerobot-train DATASET_DIR ENCODER_DIR
+    .venv/bin/python benchmarks/bench_iql.py --lerobot-train-only [--num-workers 2]
 
 Speed does not depend on the latents' content, so the replay holds random codebook
 indices (100,000 frames, 1,000 episodes). A step is what `murm train` does: sample a
 batch from the replay, `policy.forward`, backward, optimizer step, `policy.update()`.
 Each case runs fp32 and the default (`precision: auto`) in alternating blocks on the same
 policy (ABAB...), and the medians are compared, so machine noise hits both alike.
+`--lerobot-train(-only)` writes such random codes as a latent dataset (`murm encode
+--to-dataset`'s writer, with random encoders), then measures `murm train`'s step on it
+and the stock `lerobot-train --policy.type=murm` on it, alternately.
 """
 
 from __future__ import annotations
 
 import argparse
 import platform
-import re
+import resource
 import statistics
 import subprocess
 import sys
@@ -29,15 +33,18 @@ from pathlib import Path
 import numpy as np
 import torch
 from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from torch.utils.flop_counter import FlopCounterMode
 
 from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.precision import resolve_precision
-from lerobot_murm.policy.replay import LatentReplay
-from lerobot_murm.policy.train import transition_batch
+from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
+from lerobot_murm.policy.train import build_policy, transition_batch
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.latent_cache import LatentCache
+from lerobot_murm.vqvae.latent_dataset import write_latent_dataset
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 CASES = [("single", 1), ("concat", 2), ("dropout", 2), ("separated_q", 2), ("dropout", 3), ("separated_q", 3)]
 CAMERAS = ["global", "adjacent", "side"]
@@ -150,20 +157,87 @@ def cpu_model() -> str:
         return platform.processor() or "unknown"
 
 
-def lerobot_train_steps_per_s(dataset: str, encoder_dir: str, batch: int, steps: int = 12) -> float:
-    """Real `lerobot-train` on a real dataset: steps/s from its own logged update + data times."""
+def write_random_latent_dataset(folder: Path, cameras: list[str], episodes: int, frames: int = 100) -> Path:
+    """Random codes of `cameras` as a latent dataset in folder/latents, with random encoders in
+    folder/vqvae (what lerobot-train's policy checks the codes against)."""
+    source = LeRobotDataset.create("local/source", fps=10, root=folder / "source", use_videos=False, features={
+        "action": {"dtype": "float32", "shape": (4,), "names": None},
+        "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
+    })
+    rng = np.random.default_rng(0)
+    for _ in range(episodes):
+        for action in rng.uniform(-1, 1, (frames, 4)).astype(np.float32):
+            source.add_frame({"action": action, "next.reward": np.zeros(1, np.float32), "task": "random"})
+        source.save_episode()
+    source.finalize()
+    source = LeRobotDataset("local/source", root=folder / "source")
+    caches, encoder_dirs = [], []
+    for i, camera in enumerate(cameras):
+        encoder = VQVAE(VQVAEConfig(camera=camera))
+        encoder_dirs.append(folder / "vqvae" / camera)
+        encoder.save(encoder_dirs[-1])
+        cache = synthetic_cache(camera, episodes * frames, episodes, seed=i)
+        cache.codebook = encoder.quantizer.codebook.detach().numpy()
+        caches.append(cache)
+    write_latent_dataset(source, caches, encoder_dirs, folder / "latents", "local/latents")
+    return folder / "latents"
+
+
+def fast_cpu_s_per_step(policy: MurmPolicy, replay: LatentReplay, batch: int, steps: int) -> float:
+    """`murm train`'s loop (sample, forward, backward, Adam, Polyak) on `replay`: CPU seconds a step."""
+    optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
+    generator = torch.Generator().manual_seed(0)
+    start = time.process_time()
+    for _ in range(steps):
+        loss, _ = policy.forward(transition_batch(replay, batch, generator))
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        policy.update()
+    return (time.process_time() - start) / steps
+
+
+def lerobot_train_cpu_s(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
+                        num_workers: int) -> float:
+    """CPU seconds of a whole stock `lerobot-train --policy.type=murm` run on the latent dataset,
+    its data-loader workers included."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     with tempfile.TemporaryDirectory() as out:
-        command = [
+        subprocess.run([
             str(Path(sys.executable).parent / "lerobot-train"), "--policy.type=murm", "--policy.method=separated_q",
-            "--policy.cameras=[global,adjacent]", f"--policy.encoder_dir={encoder_dir}",
-            f"--dataset.repo_id=local/{dataset.rstrip('/').split('/')[-1]}", f"--dataset.root={dataset}",
-            f"--batch_size={batch}", f"--steps={steps}", "--log_freq=3", "--save_checkpoint=false",
-            "--num_workers=2", f"--output_dir={out}/run", "--wandb.enable=false",
-        ]
-        done = subprocess.run(command, capture_output=True, text=True, check=True)
-        log = done.stdout + done.stderr
-    times = [float(u) + float(d) for u, d in re.findall(r"updt_s:([\d.]+) data_s:([\d.]+)", log)]
-    return 1 / statistics.median(times[1:])  # the first window includes the dataloader's start
+            f"--policy.cameras=[{','.join(cameras)}]", f"--policy.encoder_dir={encoder_dir}", "--policy.epsilon=[2.0,2.0]",
+            "--dataset.repo_id=local/latents", f"--dataset.root={latents}", f"--batch_size={batch}", f"--steps={steps}",
+            "--save_checkpoint=false", f"--num_workers={num_workers}", f"--output_dir={out}/run", "--wandb.enable=false",
+        ], capture_output=True, check=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+
+
+def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 150, episodes: int = 1000) -> None:
+    """CPU time per update of murm train and of lerobot-train, alternately, on one latent dataset
+    (separated Q, two cameras). lerobot-train's per-step time is the difference between a run of
+    `steps` + 10 and one of 10 updates, so its start (imports, loading the dataset) cancels out.
+    CPU time, not wall time: it does not depend on what else the machine runs, and on a machine
+    whose cores are busy (2 here) updates/s is inversely proportional to it."""
+    cameras = CAMERAS[:2]
+    with tempfile.TemporaryDirectory() as folder:
+        latents = write_random_latent_dataset(Path(folder), cameras, episodes)
+        encoder_dir = Path(folder) / "vqvae"
+        config = MurmConfig(method="separated_q", cameras=cameras, encoder_dir=str(encoder_dir), epsilon=[2.0, 2.0])
+        policy = build_policy(config, LeRobotDataset("local/latents", root=latents), torch.device("cpu")).train()
+        replay = replay_for_dataset(config, LeRobotDataset("local/latents", root=latents), None)
+        fast, slow = [], []
+        for _ in range(repeats):
+            fast.append(fast_cpu_s_per_step(policy, replay, batch, steps))
+            short = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, 10, num_workers)
+            long = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, steps + 10, num_workers)
+            slow.append((long - short) / steps)
+            print(f"  CPU ms per update: murm train {1e3 * fast[-1]:.1f}, lerobot-train {1e3 * slow[-1]:.1f} "
+                  f"(its start: {short:.1f} s)", flush=True)
+    f, s = statistics.median(fast), statistics.median(slow)
+    print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, lerobot-train --num_workers={num_workers}: "
+          f"CPU ms per update: murm train {1e3 * f:.1f}, lerobot-train {1e3 * s:.1f}")
+    print(f"lerobot-train / murm train: {f / s:.2f}")
 
 
 def main() -> None:
@@ -177,10 +251,14 @@ def main() -> None:
                         help="per_camera: 128 units per camera (the default); fixed: 128 units everywhere")
     parser.add_argument("--cases", nargs="*", default=None, metavar="METHOD:CAMERAS",
                         help="e.g. separated_q:2 (default: all six)")
-    parser.add_argument("--lerobot-train", nargs=2, metavar=("DATASET_DIR", "ENCODER_DIR"))
+    parser.add_argument("--lerobot-train", action="store_true", help="also compare with lerobot-train")
+    parser.add_argument("--lerobot-train-only", action="store_true", help="only compare with lerobot-train")
+    parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train's --num_workers")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.lerobot_train_only:
+        return compare_trainers(args.batch_size, args.num_workers, args.repeats)
     device = torch.device(args.device)
     cases = [(m, int(n)) for m, n in (c.split(":") for c in args.cases)] if args.cases else CASES
     widths = list(WIDTHS) if args.widths == "both" else [args.widths]
@@ -221,10 +299,7 @@ def main() -> None:
             if n > 1:
                 print(f"  {method} with {n} cameras: {single / r['default']['steps_per_s']:.2f}")
     if args.lerobot_train:
-        slow = lerobot_train_steps_per_s(*args.lerobot_train, batch=args.batch_size)
-        fast = by_case[("separated_q", 2)]["default"]["steps_per_s"]
-        print(f"\nseparated_q, 2 cameras: murm train {fast:.1f} steps/s, lerobot-train {slow:.2f} steps/s "
-              f"-> {fast / slow:.0f}x")
+        compare_trainers(args.batch_size, args.num_workers, args.repeats)
 
 
 if __name__ == "__main__":

@@ -92,19 +92,41 @@ def _encode(args: argparse.Namespace) -> None:
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
     from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances, public_statistics, save_beside_encoder
 
+    if args.to_dataset and Path(args.to_dataset).exists():
+        raise SystemExit(f"murm encode: {args.to_dataset} exists; remove it or choose another --to-dataset folder")
     repo_id, root = dataset_location(args.dataset)
     cache_dir = Path(args.cache_dir)
     successes = episode_successes(repo_id, root)
-    stats = []
+    stats, caches = [], []
     for encoder in args.encoders:
         cache = build_latent_cache(repo_id, root, Path(encoder), cache_dir, device=args.device)
         stats.append(distance_statistics(cache, successes))
         save_beside_encoder(stats[-1], Path(encoder))
         print(f"{cache.camera}: {len(cache.indices)} frames cached; suggested epsilon {stats[-1]['suggested_epsilon']:.2f}")
+        caches.append(cache)
     public = [public_statistics(s) for s in stats]
     (cache_dir / "epsilon.json").write_text(json.dumps(public, indent=2) + "\n")
     plot_distances(stats, cache_dir / "latent_distances.png")
     print(f"wrote {cache_dir / 'epsilon.json'} and {cache_dir / 'latent_distances.png'}")
+    if args.to_dataset:
+        _write_latents(args, repo_id, root, caches)
+
+
+def _write_latents(args: argparse.Namespace, repo_id: str, root: Path | None, caches: list) -> None:
+    import shlex
+
+    from lerobot_murm.vqvae.frames import open_dataset
+    from lerobot_murm.vqvae.latent_dataset import write_latent_dataset
+
+    out = Path(args.to_dataset)
+    latent_repo_id = args.repo_id or f"local/{out.name}"
+    command = shlex.join(["murm", "encode", "--dataset", args.dataset, "--encoders", *args.encoders, "--to-dataset", str(out)])
+    dataset = write_latent_dataset(open_dataset(repo_id, root), caches, [Path(e) for e in args.encoders], out,
+                                   latent_repo_id, command)
+    print(f"latent dataset {out}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames, "
+          f"codes of {', '.join(c.camera for c in caches)}")
+    if args.push_to_hub:
+        _push(argparse.Namespace(root=out, repo_id=latent_repo_id, private=args.private))
 
 
 def _train(args: argparse.Namespace) -> None:
@@ -204,11 +226,16 @@ def build_parser() -> argparse.ArgumentParser:
     vq.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     vq.set_defaults(func=_train_vqvae)
 
-    enc = commands.add_parser("encode", help="build the latent cache and the epsilon statistics")
+    enc = commands.add_parser("encode", help="build the latent cache and the epsilon statistics (and a latent dataset)")
     enc.add_argument("--dataset", required=True, help="a dataset folder or a Hub repo id")
     enc.add_argument("--encoders", nargs="+", required=True, help="VQ-VAE checkpoint folders, one per camera")
     enc.add_argument("--cache-dir", default="outputs/latent_cache")
     enc.add_argument("--device", default="cpu")
+    enc.add_argument("--to-dataset", default=None, metavar="DIR",
+                     help="also write a LeRobotDataset of the cameras' codes, without images, to this new folder")
+    enc.add_argument("--repo-id", default=None, help="with --to-dataset: its Hub id (default: local/DIR's name)")
+    enc.add_argument("--push-to-hub", action="store_true", help="with --to-dataset: push it to --repo-id")
+    enc.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
     enc.set_defaults(func=_encode)
 
     tr = commands.add_parser(

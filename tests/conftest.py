@@ -1,7 +1,9 @@
 import atexit
 import os
 import shutil
+import sys
 import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -29,6 +31,19 @@ def make_env():
     yield _make
     for env in envs:
         env.close()
+
+
+@pytest.fixture
+def hub(monkeypatch):
+    """The local stand-in of the Hub's HTTP API (tests/helpers/fake_hub.py) takes all Hub traffic."""
+    sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+    from fake_hub import FakeHub
+
+    monkeypatch.setenv("HF_TOKEN", "hf_test_token")
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    with FakeHub() as fake:
+        fake.route_all_hub_traffic()
+        yield fake
 
 
 @pytest.fixture(scope="session")

@@ -17,8 +17,6 @@ import torch
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.hub import pull_dataset, push_dataset
 
-sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from fake_hub import FakeHub  # noqa: E402
 
 MURM = Path(sys.executable).parent / "murm"
 
@@ -28,15 +26,6 @@ def collected(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("collected") / "ds"
     collect(CollectConfig(task="place_in_random_box", root=root, episodes=2, workers=1, cameras=("global", "top"), image_size=16))
     return root
-
-
-@pytest.fixture
-def hub(monkeypatch):
-    monkeypatch.setenv("HF_TOKEN", "hf_test_token")
-    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
-    with FakeHub() as fake:
-        fake.route_all_hub_traffic()
-        yield fake
 
 
 def test_push_uploads_the_dataset_with_the_murm_card_and_pull_gets_it_back(collected, hub, tmp_path):

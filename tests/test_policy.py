@@ -7,7 +7,8 @@ import pytest
 import torch
 from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+from lerobot.datasets.sampler import EpisodeAwareSampler
+from lerobot.policies.factory import get_policy_class, make_policy, make_pre_post_processors
 
 from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
 from lerobot_murm.policy.modeling_murm import MurmPolicy
@@ -130,19 +131,21 @@ def test_the_epsilon_defaults_to_the_suggestion_murm_encode_wrote(tiny_pipeline)
     assert config.epsilon == pytest.approx(expected)
 
 
+def lerobot_rows(policy: MurmPolicy, dataset: LeRobotDataset, batch_size: int = 16) -> dict:
+    """A batch as lerobot-train hands it to the policy: LeRobot's sampler, loader and preprocessor."""
+    meta = dataset.meta
+    sampler = EpisodeAwareSampler(meta.episodes["dataset_from_index"], meta.episodes["dataset_to_index"],
+                                  drop_n_last_frames=policy.config.drop_n_last_frames, shuffle=True, seed=0)
+    preprocessor, _ = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
+    return preprocessor(next(iter(torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler))))
+
+
 @pytest.mark.parametrize("method", ["single", "concat", "dropout", "separated_q"])
-def test_forward_on_lerobot_frames_trains_every_network_but_not_the_encoders(tiny_pipeline, dataset, method):
+def test_forward_on_lerobot_rows_trains_every_network_but_not_the_encoders(tiny_pipeline, dataset, method):
     cameras = ["global"] if method == "single" else ["global", "adjacent"]
-    config = make_config(tiny_pipeline[1], method=method, cameras=cameras)
     torch.manual_seed(0)
-    policy = build_policy(config, dataset, torch.device("cpu")).train()
-    fps = dataset.meta.fps
-    framed = LeRobotDataset(REPO, root=tiny_pipeline[0], video_backend="pyav",
-                            delta_timestamps={k: [i / fps for i in config.observation_delta_indices]
-                                              for k in dataset.meta.camera_keys})
-    loader = torch.utils.data.DataLoader(framed, batch_size=16, shuffle=True,
-                                         generator=torch.Generator().manual_seed(0))
-    batch = next(iter(loader))
+    policy = make_policy(make_config(tiny_pipeline[1], method=method, cameras=cameras), ds_meta=dataset.meta).train()
+    batch = lerobot_rows(policy, dataset)
     codebook = policy.encoders["global"].quantizer.codebook.clone()
     loss, info = policy.forward(batch)
     loss.backward()
@@ -155,23 +158,16 @@ def test_forward_on_lerobot_frames_trains_every_network_but_not_the_encoders(tin
     assert -len(cameras) <= info["reward"] <= 0
 
 
-def test_frames_past_the_episode_end_are_left_out_and_hindsight_goals_are_later_frames(policy, dataset, tiny_pipeline):
-    """The LeRobot path: t+1 past the end drops the row; a relabelled goal is a future frame's latent."""
-    policy.config.her_ratio = 1.0
-    fps = dataset.meta.fps
-    framed = LeRobotDataset(REPO, root=tiny_pipeline[0], video_backend="pyav",
-                            delta_timestamps={k: [i / fps for i in policy.config.observation_delta_indices]
-                                              for k in dataset.meta.camera_keys})
-    last = framed.meta.episodes["dataset_to_index"][0] - 1  # the last frame of episode 0
-    rows = [last - 60, last - 3, last]
-    batch = torch.utils.data.default_collate([framed[i] for i in rows])
-    transition = policy.transition_from_frames(batch)
-    assert transition["state"].shape[0] == 2  # the last frame has no successor
-    frames = batch[image_feature_key("global")][:2]  # (2, T, 3, H, W)
-    goals = transition["state"][:, 0, policy.config.latent_dim :]
-    for row, goal in zip(range(2), goals, strict=True):
-        candidates = policy.encode("global", frames[row, 1:][~batch[f"{image_feature_key('global')}_is_pad"][row, 1:]])
-        assert (candidates == goal).all(-1).any()
+def test_a_policy_made_for_an_image_dataset_holds_its_encoded_frames_and_refuses_last_frames(tiny_pipeline, dataset):
+    """lerobot-train on images: every frame encoded once at construction; a transition needs a successor."""
+    policy = make_policy(make_config(tiny_pipeline[1]), ds_meta=dataset.meta)
+    rows = [0, 57, 599]
+    images = torch.stack([dataset[i][image_feature_key("adjacent")] for i in rows])
+    torch.testing.assert_close(policy.replay.latents[1][rows], policy.encode("adjacent", images))
+    with pytest.raises(ValueError, match="last frame of an episode"):
+        policy.forward({"index": torch.tensor([0, 99])})
+    saved = policy.state_dict()
+    assert all(v.numel() < 1_000_000 for v in saved.values())  # the replay is not part of the checkpoint
 
 
 def test_select_action_is_deterministic_and_within_the_action_box(policy):

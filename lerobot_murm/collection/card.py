@@ -1,4 +1,5 @@
-"""The dataset card: `datasets_cards/murm_demonstrations.md` filled from the collection summary.
+"""The dataset cards: `datasets_cards/murm_demonstrations.md` filled from the collection
+summary, `datasets_cards/murm_latents.md` from a latent dataset's description.
 
 It becomes the description section of LeRobot's own dataset card (`push_to_hub`
 renders LeRobot's template around it, with the dataset structure).
@@ -11,8 +12,10 @@ from string import Template
 
 from lerobot_murm.env.cameras import CAMERAS, EndEffectorCamera
 from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, TASK_DESCRIPTIONS
+from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 
 TEMPLATE = Path(__file__).resolve().parents[2] / "datasets_cards" / "murm_demonstrations.md"
+LATENTS_TEMPLATE = TEMPLATE.with_name("murm_latents.md")
 
 SUCCESS_RULES = {
     "place_in_box": "the cube's centre within 3 cm of the goal box's centre (one of nine boxes)",
@@ -50,4 +53,24 @@ def render_card(summary: dict, repo_id: str) -> str:
         base_seed=recipe["base_seed"],
         repo_id=repo_id,
         command=command,
+    )
+
+
+def render_latent_card(description: dict, episodes: int, repo_id: str) -> str:
+    """The card of a latent dataset, from its `meta/murm_latents.json`."""
+    cameras = description["cameras"]
+    source = description["source"]["repo_id"]
+    grid = VQVAEConfig(**next(iter(cameras.values()))["encoder"]).grid_size
+    return Template(LATENTS_TEMPLATE.read_text()).substitute(
+        source=source,
+        episodes=episodes,
+        grid=grid,
+        camera_rows="\n".join(
+            f"| `observation.latent.{c}`, `observation.latent.{c}_goal` | int16 codes of the {c} frame and goal image |"
+            for c in cameras
+        ),
+        encoder_rows="\n".join(f"| {c} | `{info['encoder_fingerprint']}` |" for c, info in cameras.items()),
+        repo_id=repo_id,
+        cameras=",".join(cameras),
+        command=description["command"],
     )

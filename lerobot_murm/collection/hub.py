@@ -15,8 +15,9 @@ from huggingface_hub import constants
 from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_murm.collection.card import render_card
+from lerobot_murm.collection.card import render_card, render_latent_card
 from lerobot_murm.collection.dataset import SUMMARY_FILE
+from lerobot_murm.vqvae.latent_dataset import LATENTS_FILE
 
 HUB_ERRORS = (httpx.HTTPError, HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled, OSError)
 
@@ -26,15 +27,20 @@ class HubUnavailable(RuntimeError):
 
 
 def push_dataset(root: Path, repo_id: str, private: bool = False) -> str:
-    """Upload the dataset at `root` as `repo_id`, with the MURM card; returns the card text."""
+    """Upload the demonstrations or latent dataset at `root` as `repo_id`, with its MURM card;
+    returns the card text."""
     root = Path(root)
-    summary = json.loads((root / SUMMARY_FILE).read_text())
-    card = render_card(summary, repo_id)
     dataset = LeRobotDataset(repo_id, root=root, video_backend="pyav")
+    if (root / LATENTS_FILE).exists():
+        card = render_latent_card(json.loads((root / LATENTS_FILE).read_text()), dataset.meta.total_episodes, repo_id)
+        kind = "latents"
+    else:
+        summary = json.loads((root / SUMMARY_FILE).read_text())
+        card, kind = render_card(summary, repo_id), summary["recipe"]["task"]
     try:
         dataset.push_to_hub(
             private=private,
-            tags=["murm", "goal-conditioned", "multi-view", "offline-rl", summary["recipe"]["task"]],
+            tags=["murm", "goal-conditioned", "multi-view", "offline-rl", kind],
             license="apache-2.0",
             dataset_description=card,
         )

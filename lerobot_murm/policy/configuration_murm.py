@@ -110,9 +110,6 @@ class MurmConfig(PreTrainedConfig):
     # zero pair, like the other networks; "excluded" leaves the dropped cameras' Q_k out of
     # the mean (eq. 11 over the cameras that remain)
     dropped_q: str = "zeros"
-    # lerobot-train reads frames t, t+1 and these later frames as hindsight goal candidates
-    # (the fast trainer draws any later frame of the episode)
-    her_offsets: list[int] = field(default_factory=lambda: [2, 5, 10, 20, 50])
     # matmuls of the training losses in "bf16" (parameters, optimizer state, output layers and
     # losses stay fp32) or "fp32"; "auto": bf16 on CUDA and on CPUs with native bf16
     # (avx512_bf16/amx_bf16), fp32 elsewhere (policy/precision.py). Not named `dtype`: that
@@ -214,8 +211,14 @@ class MurmConfig(PreTrainedConfig):
 
     # --- LeRobot's PreTrainedConfig interface -------------------------------------------
     @property
-    def observation_delta_indices(self) -> list[int]:
-        return [0, 1, *self.her_offsets]
+    def drop_n_last_frames(self) -> int:
+        """lerobot-train's sampler never picks an episode's last frame: it has no successor."""
+        return 1
+
+    @property
+    def observation_delta_indices(self) -> None:
+        """One row per sample: successors and hindsight goals come from the policy's replay."""
+        return None
 
     @property
     def action_delta_indices(self) -> None:
@@ -233,6 +236,19 @@ class MurmConfig(PreTrainedConfig):
         return None
 
     def validate_features(self) -> None:
+        """The data has each camera's images and goal images, or their codes (a latent dataset)."""
+        from lerobot_murm.vqvae.latent_dataset import latent_goal_key, latent_key
+
+        if any(k.startswith(latent_key("")) for k in self.input_features):
+            for camera in self.cameras:
+                grid = self.encoder_config(camera).grid_size
+                for key in (latent_key(camera), latent_goal_key(camera)):
+                    if key not in self.input_features:
+                        raise ValueError(f"the policy needs {key}; the latent dataset has no codes of camera {camera!r}")
+                    if tuple(self.input_features[key].shape) != (grid * grid,):
+                        raise ValueError(f"{key} has shape {tuple(self.input_features[key].shape)}; the {camera} "
+                                         f"encoder makes a {grid}x{grid} grid of codes")
+            return
         visual = {k: ft for k, ft in self.input_features.items() if ft.type is FeatureType.VISUAL}
         for camera in self.cameras:
             size = self.encoder_config(camera).image_size

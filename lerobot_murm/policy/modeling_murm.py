@@ -1,11 +1,15 @@
 """The MURM policy: frozen per-camera VQ-VAE encoders + goal-conditioned IQL (paper Algorithm 1).
 
-One `forward` serves both trainers. `lerobot-train` hands it LeRobot batches of images
-(frames t, t+1 and a few later frames for hindsight goals), which it encodes with its
-own encoders; the fast trainer (`murm train`) hands it latent transitions sampled from
-the latent cache. Either way the loss is IQL's three losses summed: each network's loss
-reaches only its own parameters (the others are detached), so one Adam with a parameter
-group per network is three Adams, and LeRobot's single optimizer step trains all three.
+One `forward` serves both trainers, and both draw transitions from the same sampler
+(`replay.LatentReplay`). The fast trainer (`murm train`) hands `forward` the transitions
+it sampled. Under `lerobot-train` the policy, given the dataset's metadata at
+construction, holds the latents of every row in memory (read from a latent dataset's
+codes, or encoded once from an image dataset), and `forward` turns the rows LeRobot's
+sampler chose (the batch's `index`) into transitions: successor, hindsight goal and
+reward come from the sampler `murm train` uses, not from the frames in the batch.
+Either way the loss is IQL's three losses summed: each network's loss reaches only its
+own parameters (the others are detached), so one Adam with a parameter group per network
+is three Adams, and LeRobot's single optimizer step trains all three.
 """
 
 from __future__ import annotations
@@ -26,13 +30,11 @@ from lerobot_murm.policy.iql import (
     expectile_loss,
     mlp,
     polyak_update,
-    sparse_reward,
 )
 from lerobot_murm.policy.precision import compute_dtype, matmul_precision, resolve_precision
+from lerobot_murm.policy.replay import ACTION, DONE, NEXT_STATE, REWARD, STATE, LatentReplay, replay_for_dataset
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
-# keys of a latent transition batch (what the fast trainer's sampler returns)
-STATE, NEXT_STATE, ACTION, REWARD, DONE = "state", "next_state", "action", "reward", "done"
 LOGGED = ("value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight")
 
 
@@ -71,9 +73,15 @@ class MurmPolicy(PreTrainedPolicy):
             state_dim, action_dim, config.shared_width, config.policy_layers, config.log_std_min, config.log_std_max
         )
         self.mask_generator = torch.Generator().manual_seed(config.eval_mask_seed)
-        if dataset_meta is not None:  # a fresh policy for lerobot-train: encoders and statistics from the data
+        # the training data's latents, for lerobot-train; a plain attribute: never saved or synced
+        self.replay: LatentReplay | None = None
+        if dataset_meta is not None:  # a fresh policy for lerobot-train: encoders, replay and statistics
+            from lerobot_murm.vqvae.frames import open_dataset
+
             self.load_encoders()
-            self.fit_latent_statistics(self._sample_dataset_latents(dataset_meta))
+            dataset = open_dataset(dataset_meta.repo_id, dataset_meta.root)
+            self.replay = replay_for_dataset(config, dataset, cache_dir=None, device=config.device or "cpu")
+            self.fit_latent_statistics(self.replay.latents)
 
     def fit_latent_statistics(self, latents: list[Tensor]) -> None:
         """Per-feature mean and std of each camera's (N, latent_dim) latents; std floored so that
@@ -84,19 +92,6 @@ class MurmPolicy(PreTrainedPolicy):
         for k, z in enumerate(latents):
             self.latent_mean[k] = z.mean(0)
             self.latent_std[k] = z.std(0).clamp(min=self.config.latent_std_floor)
-
-    @torch.no_grad()
-    def _sample_dataset_latents(self, dataset_meta: Any, frames: int = 10_000) -> list[Tensor]:
-        from lerobot_murm.vqvae.frames import decode_pngs, open_dataset, read_camera_pngs
-
-        dataset = open_dataset(dataset_meta.repo_id, dataset_meta.root)
-        latents = []
-        for camera in self.cameras:
-            pngs = read_camera_pngs(dataset, camera)
-            rows = torch.linspace(0, len(pngs.frames) - 1, min(frames, len(pngs.frames))).long()
-            images = torch.from_numpy(decode_pngs([pngs.frames[i] for i in rows]))
-            latents.append(self.encoders[camera].encode(images))
-        return latents
 
     def normalize(self, state: Tensor) -> Tensor:
         """Standardise (B, cameras, 2 * latent) states; z and z_goal share their camera's statistics.
@@ -188,37 +183,18 @@ class MurmPolicy(PreTrainedPolicy):
 
     # --- learning --------------------------------------------------------------------------
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
-        transition = batch if STATE in batch else self.transition_from_frames(batch)
+        """IQL's loss on a batch of transitions (`murm train`) or of LeRobot dataset rows (`lerobot-train`)."""
+        transition = batch if STATE in batch else self.transitions_of_rows(batch["index"])
         device = transition[STATE].device
         with matmul_precision(resolve_precision(self.config.precision, device), device):
             return self.iql_loss(transition)
 
-    @torch.no_grad()
-    def transition_from_frames(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        """A LeRobot batch (frames t, t+1, t + her_offsets) -> latent transitions with HER goals.
-
-        Rows whose t+1 lies past the episode's end are dropped; a hindsight goal is a random
-        later frame among the offsets that exist in the episode.
-        """
-        pad = batch[f"{image_feature_key(self.cameras[0])}_is_pad"]  # (B, 2 + offsets)
-        valid = ~pad[:, 1]
-        z = {c: self.encode(c, batch[image_feature_key(c)][valid]) for c in self.cameras}  # (n, T, latent)
-        goal = {c: self.encode(c, batch[goal_feature_key(c)][valid, 0]) for c in self.cameras}
-        n, device = int(valid.sum()), pad.device
-        future_ok = ~pad[valid, 1:]  # candidate goals: t+1 and the offsets
-        pick = torch.multinomial(future_ok.float(), 1).squeeze(1) + 1
-        relabel = torch.rand(n, device=device) < self.config.her_ratio
-        rows = torch.arange(n, device=device)
-        z_goal = torch.stack([torch.where(relabel[:, None], z[c][rows, pick], goal[c]) for c in self.cameras], 1)
-        z_now = torch.stack([z[c][:, 0] for c in self.cameras], 1)
-        z_next = torch.stack([z[c][:, 1] for c in self.cameras], 1)
-        return {
-            STATE: torch.cat([z_now, z_goal], -1),
-            NEXT_STATE: torch.cat([z_next, z_goal], -1),
-            ACTION: batch["action"][valid],
-            REWARD: sparse_reward(z_next, z_goal, self.epsilon),
-            DONE: torch.zeros(n, device=device),
-        }
+    def transitions_of_rows(self, rows: Tensor) -> dict[str, Tensor]:
+        """The replay's transitions from dataset rows `rows` (LeRobot's sampler never picks an
+        episode's last frame: `MurmConfig.drop_n_last_frames`), on the rows' device."""
+        if self.replay is None:
+            raise RuntimeError("this policy holds no training data: make it with the dataset's metadata (lerobot-train)")
+        return {k: v.to(rows.device) for k, v in self.replay.transitions(rows).transition().items()}
 
     def iql_loss(self, transition: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
         c = self.config

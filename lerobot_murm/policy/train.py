@@ -1,7 +1,8 @@
 """`murm train --config configs/...yaml`: the fast trainer.
 
-Batches come from the latent cache in memory (LatentReplay: transitions, next states
-and hindsight goals gathered by index), and go through the same `MurmPolicy.forward`,
+Batches come from the latents in memory (LatentReplay, over the latent cache of an image
+dataset or the codes of a latent dataset: transitions, next states and hindsight goals
+gathered by index), and go through the same `MurmPolicy.forward`,
 optimizer preset and `update()` as under `lerobot-train`; checkpoints are LeRobot's
 format (`pretrained_model/` with the processors), so `lerobot-eval` loads them.
 
@@ -32,12 +33,11 @@ from lerobot_murm.device import resolve_device
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
 from lerobot_murm.policy.learning_curve import plot_learning_curve
-from lerobot_murm.policy.modeling_murm import ACTION, DONE, NEXT_STATE, REWARD, STATE, MurmPolicy
+from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
-from lerobot_murm.policy.replay import LatentReplay
+from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
 from lerobot_murm.stopping import StopRequest, TrainingInterrupted
 from lerobot_murm.vqvae.frames import dataset_location, open_dataset
-from lerobot_murm.vqvae.latent_cache import build_latent_cache
 
 LOG_COLUMNS = ["step", "value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight", "steps_per_s"]
 EVAL_COLUMNS = ["step", "mask_p", "success_rate", "episodes", "seconds", "split", "mask_mode"]
@@ -92,8 +92,7 @@ def build_policy(config: MurmConfig, dataset, device: torch.device) -> MurmPolic
 
 
 def transition_batch(replay: LatentReplay, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-    b = replay.sample(batch_size, generator)
-    return {STATE: b.state, NEXT_STATE: b.next_state, ACTION: b.action, REWARD: b.reward, DONE: b.done}
+    return replay.sample(batch_size, generator).transition()
 
 
 def _append_csv(path: Path, columns: list[str], rows: list[dict]) -> None:
@@ -156,12 +155,7 @@ def train(config: TrainConfig) -> dict:
 
     repo_id, root = dataset_location(config.dataset)
     dataset = open_dataset(repo_id, root)
-    caches = [
-        build_latent_cache(repo_id, root, Path(policy_config.encoder_dir) / c, Path(config.cache_dir), str(device))
-        for c in policy_config.cameras
-    ]
-    actions = np.asarray(dataset.hf_dataset.with_format("arrow").select_columns(["action"])[:]["action"].to_pylist())
-    replay = LatentReplay(caches, actions, policy_config.epsilon, policy_config.her_ratio, device=device)
+    replay = replay_for_dataset(policy_config, dataset, Path(config.cache_dir), device)
     policy = build_policy(policy_config, dataset, device)
     policy.fit_latent_statistics(replay.latents)
     optimizer = policy_config.get_optimizer_preset().build(policy.get_optim_params())

@@ -73,14 +73,15 @@ def encode_images(
 
 
 def build_latent_cache(
-    repo_id: str, root: Path | None, encoder_dir: Path, cache_dir: Path, device: str = "cpu"
+    repo_id: str, root: Path | None, encoder_dir: Path, cache_dir: Path | None, device: str = "cpu"
 ) -> LatentCache:
-    """Load the cache for (dataset, encoder), building it first if it does not exist yet."""
+    """Load the cache for (dataset, encoder), building it first if it does not exist yet;
+    without `cache_dir`, build it in memory only."""
     model = VQVAE.load(encoder_dir, device=device)
     camera = model.config.camera
     dataset = open_dataset(repo_id, root)
-    path = cache_path(cache_dir, camera, dataset_fingerprint(dataset), encoder_fingerprint(encoder_dir))
-    if path.exists():
+    path = cache_dir and cache_path(cache_dir, camera, dataset_fingerprint(dataset), encoder_fingerprint(encoder_dir))
+    if path and path.exists():
         with np.load(path) as data:
             return LatentCache(camera, **{k: data[k] for k in data.files})
     pngs = read_camera_pngs(dataset, camera)
@@ -99,6 +100,8 @@ def build_latent_cache(
         episode_index=pngs.episode_index,
         frame_index=pngs.frame_index,
     )
+    if path is None:
+        return cache
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
     np.savez(tmp, **{k: getattr(cache, k) for k in ("indices", "goal_indices", "codebook", "episode_index", "frame_index")})

@@ -13,11 +13,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import pybullet
 from gymnasium import spaces
-from pybullet_utils.bullet_client import BulletClient
 
-from lerobot_murm.env import objects
+from lerobot_murm.env import bullet, objects
 from lerobot_murm.env.cameras import CAMERA_NAMES, CameraRig, validate_camera_names
 from lerobot_murm.env.robot import MAX_FINGER_WIDTH, Panda
 from lerobot_murm.env.tasks import WORKSPACE_HIGH, WORKSPACE_LOW, make_task
@@ -93,7 +91,7 @@ class MurmEnv(gym.Env):
         )
         self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
 
-        self._client = BulletClient(connection_mode=pybullet.DIRECT)
+        self._client = bullet.connect()
         self._rig = CameraRig(self._client, self.cameras, self.image_size)
         self._task = make_task(task)
         self._robot: Panda | None = None

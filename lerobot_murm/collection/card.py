@@ -6,19 +6,24 @@ renders LeRobot's template around it, with the dataset structure).
 
 from __future__ import annotations
 
-from pathlib import Path
+from importlib.resources import files
 from string import Template
 
 from lerobot_murm.env.cameras import CAMERAS, EndEffectorCamera
 from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, TASK_DESCRIPTIONS
 
-TEMPLATE = Path(__file__).resolve().parents[2] / "datasets_cards" / "murm_demonstrations.md"
+DEMONSTRATIONS_TEMPLATE = "murm_demonstrations.md"
 
 SUCCESS_RULES = {
     "place_in_box": "the cube's centre within 3 cm of the goal box's centre (one of nine boxes)",
     "place_in_random_box": "the cube's centre within 5 cm of the centre of a box placed at random in 3-D",
     "pick_up": "the target object (one of three shapes) lifted 5 cm above where it started",
 }
+
+
+def card_template(name: str) -> Template:
+    """The template `datasets_cards/<name>`, read from the installed package (it ships as package data)."""
+    return Template((files("lerobot_murm") / "datasets_cards" / name).read_text(encoding="utf-8"))
 
 
 def render_card(summary: dict, repo_id: str) -> str:
@@ -33,7 +38,7 @@ def render_card(summary: dict, repo_id: str) -> str:
         f"murm collect --task {recipe['task']} --episodes {summary['episodes']} --seed {recipe['base_seed']} "
         f"--noise-k {recipe['noise_k']} --noise-std {recipe['noise_std']} --noisy-fraction {recipe['noisy_fraction']} --cameras {','.join(cameras)}"
     )
-    return Template(TEMPLATE.read_text()).substitute(
+    return card_template(DEMONSTRATIONS_TEMPLATE).substitute(
         task=recipe["task"],
         task_text=TASK_DESCRIPTIONS[recipe["task"]].capitalize() + ".",
         success_rule=SUCCESS_RULES[recipe["task"]],

@@ -1,5 +1,8 @@
 """The simulator's contract: spaces, seeding, goal images, success criteria, errors, robustness."""
 
+import subprocess
+import sys
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -273,3 +276,14 @@ def test_every_fixed_camera_sees_the_target_object_at_reset(make_env, task):
             )
             object_pixels = int((np.asarray(segmentation) == env.task.object_body).sum())
             assert object_pixels >= 3, f"{name} camera shows {object_pixels} pixels of the object (seed {seed})"
+
+
+def test_the_simulator_prints_nothing_even_when_left_open_at_exit(tmp_path):
+    """pybullet's C code prints at import and connect, and its clean-up fails noisily at exit."""
+    script = (
+        "import gymnasium as gym, lerobot_murm\n"
+        "env = gym.make('murm/PickUp-v0', cameras=('global',), image_size=16)\n"
+        "env.reset(seed=0)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout == "" and result.stderr == "", result.stdout + result.stderr

@@ -7,6 +7,8 @@ string, which pybullet echoes). Both come from C `printf`, below Python's
 descriptors themselves are pointed at /dev/null for the length of those two calls
 and restored right after. Every simulator is built through `connect()`, and this
 module is imported before any other `lerobot_murm.env` module imports pybullet.
+An env never closed would otherwise print "Exception ignored ... TypeError" at exit,
+when pybullet's own clean-up finds the module half torn down.
 """
 
 from __future__ import annotations
@@ -54,7 +56,17 @@ with native_output_silenced():
     from pybullet_utils.bullet_client import BulletClient
 
 
+class QuietBulletClient(BulletClient):
+    """A `BulletClient` that also disconnects silently when an env left open is collected at exit."""
+
+    def __del__(self) -> None:
+        try:
+            super().__del__()
+        except Exception:  # noqa: BLE001  at interpreter exit pybullet's module globals may be None already
+            pass
+
+
 def connect() -> BulletClient:
     """A headless (DIRECT) simulator client of its own."""
     with native_output_silenced():
-        return BulletClient(connection_mode=pybullet.DIRECT)
+        return QuietBulletClient(connection_mode=pybullet.DIRECT)

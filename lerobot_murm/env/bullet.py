@@ -19,7 +19,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-_LIBC = ctypes.CDLL(None)
+_LIBC = ctypes.CDLL(None) if os.name == "posix" else None  # the C library the process runs on
 
 
 @contextmanager
@@ -44,7 +44,8 @@ def native_output_silenced() -> Iterator[None]:
             os.dup2(devnull, fd)
         yield
     finally:
-        _LIBC.fflush(None)
+        if _LIBC is not None:
+            _LIBC.fflush(None)
         for fd, copy in saved.items():
             os.dup2(copy, fd)
             os.close(copy)

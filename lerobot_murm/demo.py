@@ -47,7 +47,7 @@ def save_camera_grid(path: Path, seed: int, image_size: int = 48) -> None:
 
 def run_expert_episode(task: str, seed: int, frames_path: Path) -> dict:
     """One seeded expert episode; saves evenly spaced `render()` frames as a strip."""
-    env = MurmEnv(task=task)
+    env = MurmEnv(task=task, render_views=False)  # the scene alone: the camera grid is cameras.png
     expert = ScriptedExpert(task)
     obs, _ = env.reset(seed=seed)
     keep = set(np.linspace(0, EPISODE_STEPS - 1, ROLLOUT_FRAMES).astype(int).tolist())

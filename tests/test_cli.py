@@ -7,6 +7,9 @@ from pathlib import Path
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from PIL import Image
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from quiet import assert_quiet  # noqa: E402
+
 MURM = Path(sys.executable).parent / "murm"
 
 
@@ -15,6 +18,7 @@ def test_murm_demo_writes_the_camera_grid_one_expert_episode_per_task_and_a_smal
         [str(MURM), "demo", "--out", str(tmp_path), "--seed", "0"], capture_output=True, text=True, timeout=300
     )
     assert result.returncode == 0, result.stderr
+    assert_quiet(result.stdout + result.stderr)  # `make run` starts with this command
     lines = [line for line in result.stdout.splitlines() if "seed 0" in line]
     assert [line.split()[0] for line in lines] == ["place_in_box", "place_in_random_box", "pick_up"]
     assert all("success=True" in line for line in lines), result.stdout

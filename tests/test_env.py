@@ -1,5 +1,8 @@
 """The simulator's contract: spaces, seeding, goal images, success criteria, errors, robustness."""
 
+import subprocess
+import sys
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -48,8 +51,26 @@ def test_observation_has_five_cameras_goals_state_and_privileged_state(make_env)
     assert obs["agent_pos"].shape == (4,) and obs["agent_pos"].dtype == np.float32
     assert obs["environment_state"].shape == (6,)
     assert env.observation_space.contains(obs)
+    frame = env.render()  # the 256x256 overview, then a 128-wide column per camera: view above goal
+    assert frame.shape == (256, 256 + 5 * 128, 3) and frame.dtype == np.uint8
+
+
+def test_render_tiles_each_camera_as_observed_above_its_goal_beside_the_overview(make_env):
+    env = make_env(task="pick_up", cameras=("side", "active"), image_size=16, render_size=64)
+    obs, _ = env.reset(seed=2)
+    obs, *_ = env.step(np.array([0.5, 0.0, -1.0, 0.0]))
     frame = env.render()
-    assert frame.shape == (256, 256, 3) and frame.dtype == np.uint8
+    assert frame.shape == (64, 64 + 2 * 32, 3)
+    overview = make_env(task="pick_up", cameras=("side",), render_size=64, render_views=False)
+    overview.reset(seed=2)
+    assert overview.render().shape == (64, 64, 3)
+    for column, camera in enumerate(("side", "active")):
+        tiles = frame[:, 64 + 32 * column : 64 + 32 * (column + 1)]
+        for row, key in enumerate((camera, goal_key(camera))):
+            tile = tiles[32 * row : 32 * (row + 1)]
+            # 2x nearest-neighbour enlargement of the observed image; the label covers the top-left corner
+            np.testing.assert_array_equal(tile[16:, 16:], obs["pixels"][key][8:, 8:].repeat(2, 0).repeat(2, 1))
+            assert np.any(tile[:8, :] != obs["pixels"][key][:4].repeat(2, 0).repeat(2, 1)), "no label"
 
 
 def test_camera_subset_and_image_size_are_respected(make_env):
@@ -255,3 +276,14 @@ def test_every_fixed_camera_sees_the_target_object_at_reset(make_env, task):
             )
             object_pixels = int((np.asarray(segmentation) == env.task.object_body).sum())
             assert object_pixels >= 3, f"{name} camera shows {object_pixels} pixels of the object (seed {seed})"
+
+
+def test_the_simulator_prints_nothing_even_when_left_open_at_exit(tmp_path):
+    """pybullet's C code prints at import and connect, and its clean-up fails noisily at exit."""
+    script = (
+        "import gymnasium as gym, lerobot_murm\n"
+        "env = gym.make('murm/PickUp-v0', cameras=('global',), image_size=16)\n"
+        "env.reset(seed=0)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout == "" and result.stderr == "", result.stdout + result.stderr

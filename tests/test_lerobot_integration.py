@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import av
 import numpy as np
 import pytest
 
@@ -79,6 +80,12 @@ def test_lerobot_eval_runs_a_policy_in_the_murm_env_with_async_batches(tmp_path)
     assert 0.0 <= overall["pc_success"] <= 100.0
     videos = [Path(p) for p in overall["video_paths"]]
     assert videos and all(p.stat().st_size > 1000 for p in videos)
+    with av.open(str(videos[0])) as container:
+        frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]
+    assert len(frames) > 50 and frames[0].shape == (256, 256 + 2 * 128, 3)  # overview, then global and active
+    for column in (256, 384):  # each camera's goal tile (lower half): the goal stays, and is not blank
+        first, last = (f[160:, column + 8 : column + 120].astype(int) for f in (frames[0], frames[-1]))
+        assert np.abs(first - last).mean() < 3 and first.std() > 10
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,9 @@ import pytest
 import torch
 import yaml
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from quiet import assert_quiet  # noqa: E402
+
 BIN = Path(sys.executable).parent
 CAMERAS = "[global,adjacent]"
 ENV_ARGS = ["--env.type=murm", "--env.task=place_in_box", "--env.image_size=16", f"--env.cameras={CAMERAS}"]
@@ -67,6 +70,7 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
                           eval_episodes=1, final_eval_episodes=2, eval_mask_p=[0.0, 0.5], eval_envs=1)
     out = run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     assert "masking 50%: success" in out
+    assert_quiet(out)
     run_dir = tmp_path / "run"
     for name in ("log.csv", "eval.csv", "learning_curve.png", "final_eval.json", "train_config.yaml"):
         assert (run_dir / name).exists(), name

@@ -13,6 +13,9 @@ import pytest
 from lerobot_murm.experiments.reproduce import load_reproduce_config
 from lerobot_murm.policy.train import load_train_config
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from quiet import assert_quiet  # noqa: E402
+
 REPO = Path(__file__).parents[1]
 MURM = Path(sys.executable).parent / "murm"
 TINY = [
@@ -26,6 +29,7 @@ def murm(args: list[str], cwd: Path) -> str:
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     result = subprocess.run([str(MURM), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, f"murm {args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
+    assert_quiet(result.stdout + result.stderr)  # `make run` ends with `murm reproduce`
     return result.stdout
 
 

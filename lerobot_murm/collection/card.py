@@ -7,21 +7,26 @@ renders LeRobot's template around it, with the dataset structure).
 
 from __future__ import annotations
 
-from pathlib import Path
+from importlib.resources import files
 from string import Template
 
 from lerobot_murm.env.cameras import CAMERAS, EndEffectorCamera
 from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, TASK_DESCRIPTIONS
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 
-TEMPLATE = Path(__file__).resolve().parents[2] / "datasets_cards" / "murm_demonstrations.md"
-LATENTS_TEMPLATE = TEMPLATE.with_name("murm_latents.md")
+DEMONSTRATIONS_TEMPLATE = "murm_demonstrations.md"
+LATENTS_TEMPLATE = "murm_latents.md"
 
 SUCCESS_RULES = {
     "place_in_box": "the cube's centre within 3 cm of the goal box's centre (one of nine boxes)",
     "place_in_random_box": "the cube's centre within 5 cm of the centre of a box placed at random in 3-D",
     "pick_up": "the target object (one of three shapes) lifted 5 cm above where it started",
 }
+
+
+def card_template(name: str) -> Template:
+    """The template `datasets_cards/<name>`, read from the installed package (it ships as package data)."""
+    return Template((files("lerobot_murm") / "datasets_cards" / name).read_text(encoding="utf-8"))
 
 
 def render_card(summary: dict, repo_id: str) -> str:
@@ -36,7 +41,7 @@ def render_card(summary: dict, repo_id: str) -> str:
         f"murm collect --task {recipe['task']} --episodes {summary['episodes']} --seed {recipe['base_seed']} "
         f"--noise-k {recipe['noise_k']} --noise-std {recipe['noise_std']} --noisy-fraction {recipe['noisy_fraction']} --cameras {','.join(cameras)}"
     )
-    return Template(TEMPLATE.read_text()).substitute(
+    return card_template(DEMONSTRATIONS_TEMPLATE).substitute(
         task=recipe["task"],
         task_text=TASK_DESCRIPTIONS[recipe["task"]].capitalize() + ".",
         success_rule=SUCCESS_RULES[recipe["task"]],
@@ -61,7 +66,7 @@ def render_latent_card(description: dict, episodes: int, repo_id: str) -> str:
     cameras = description["cameras"]
     source = description["source"]["repo_id"]
     grid = VQVAEConfig(**next(iter(cameras.values()))["encoder"]).grid_size
-    return Template(LATENTS_TEMPLATE.read_text()).substitute(
+    return card_template(LATENTS_TEMPLATE).substitute(
         source=source,
         episodes=episodes,
         grid=grid,

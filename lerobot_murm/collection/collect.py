@@ -152,7 +152,7 @@ def _open_dataset(config: CollectConfig) -> LeRobotDataset:
             raise ValueError(f"{root} is not a murm collection (no {murm_dataset.SUMMARY_FILE})")
         if stored != config.recipe:
             raise ValueError(f"cannot resume: {root} was collected with {stored}, not {config.recipe}")
-        return LeRobotDataset.resume(config.repo_id, root=root)
+        return LeRobotDataset.resume(config.repo_id, root=root, video_backend="pyav")
     _check_writable(root)
     dataset = murm_dataset.create_dataset(config.repo_id, root, config.recipe)
     murm_dataset.write_summary(root, config.recipe, successes=np.zeros(0, bool), requested=config.episodes)

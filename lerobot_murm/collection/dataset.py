@@ -69,6 +69,7 @@ def create_dataset(repo_id: str, root: Path, recipe: EpisodeRecipe) -> LeRobotDa
         root=root,
         robot_type="franka_panda",
         use_videos=False,  # no image writer either: workers stage the PNGs (stage_episode)
+        video_backend="pyav",  # no videos to decode; naming it spares LeRobot's noisy torchcodec probe
     )
 
 

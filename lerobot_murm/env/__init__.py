@@ -2,6 +2,7 @@
 
 import gymnasium as gym
 
+from lerobot_murm.env import bullet  # noqa: F401  (first: imports pybullet without its build-time line)
 from lerobot_murm.env.cameras import CAMERA_NAMES
 from lerobot_murm.env.murm_env import EPISODE_STEPS, MurmEnv, goal_key
 from lerobot_murm.env.tasks import TASK_NAMES

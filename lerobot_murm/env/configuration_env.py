@@ -26,6 +26,8 @@ class MurmEnvConfig(EnvConfig):
     image_size: int = 48
     goal_images: bool = True
     render_size: int = 256
+    # Videos show each camera's image above its goal image beside the render (false: the render alone).
+    render_views: bool = True
 
     def __post_init__(self) -> None:
         if self.task not in TASK_NAMES:
@@ -60,5 +62,6 @@ class MurmEnvConfig(EnvConfig):
             "image_size": self.image_size,
             "goal_images": self.goal_images,
             "render_size": self.render_size,
+            "render_views": self.render_views,
             "max_episode_steps": self.episode_length,
         }

@@ -13,14 +13,13 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import pybullet
 from gymnasium import spaces
-from pybullet_utils.bullet_client import BulletClient
 
-from lerobot_murm.env import objects
+from lerobot_murm.env import bullet, objects
 from lerobot_murm.env.cameras import CAMERA_NAMES, CameraRig, validate_camera_names
 from lerobot_murm.env.robot import MAX_FINGER_WIDTH, Panda
 from lerobot_murm.env.tasks import WORKSPACE_HIGH, WORKSPACE_LOW, make_task
+from lerobot_murm.env.video_frame import compose_frame, tile_size
 
 PHYSICS_TIMESTEP = 1.0 / 240.0
 SUBSTEPS = 10
@@ -62,6 +61,7 @@ class MurmEnv(gym.Env):
         goal_images: bool = True,
         render_mode: str | None = "rgb_array",
         render_size: int = 256,
+        render_views: bool = True,
         lowpoly_robot: bool = True,
     ):
         super().__init__()
@@ -75,6 +75,7 @@ class MurmEnv(gym.Env):
         self.goal_images = goal_images
         self.render_mode = render_mode
         self.render_size = render_size
+        self.render_views = render_views
         self.lowpoly_robot = lowpoly_robot
 
         image_space = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
@@ -93,11 +94,13 @@ class MurmEnv(gym.Env):
         )
         self.action_space = spaces.Box(-1.0, 1.0, (4,), np.float32)
 
-        self._client = BulletClient(connection_mode=pybullet.DIRECT)
+        self._client = bullet.connect()
         self._rig = CameraRig(self._client, self.cameras, self.image_size)
+        self._overview = CameraRig(self._client, ("global",), self.render_size)  # whichever cameras observe
         self._task = make_task(task)
         self._robot: Panda | None = None
         self._goal_pixels: dict[str, np.ndarray] = {}
+        self._pixels: dict[str, np.ndarray] = {}  # the last observation's images, for render()
 
     @staticmethod
     def validate_image_size(image_size) -> None:
@@ -145,10 +148,16 @@ class MurmEnv(gym.Env):
         return self._observation(), float(success), False, False, {"is_success": success}
 
     def render(self) -> np.ndarray | None:
-        """A larger view from the global camera, for rollout videos."""
+        """The frame of rollout videos: a larger view from the global camera and, with `render_views`,
+        beside it each camera's last observed image above its goal image (see `video_frame`)."""
         if self.render_mode is None:
             return None
-        return self._rig.render("global", self._ee_position(), size=self.render_size)
+        if not self.render_views or not self._pixels:
+            return self._overview.render("global", self._ee_position())
+        overview = self._overview.render("global", self._ee_position(), size=2 * tile_size(self.render_size))
+        views = {name: self._pixels[name] for name in self.cameras}
+        goals = {name: self._pixels[goal_key(name)] for name in self.cameras if goal_key(name) in self._pixels}
+        return compose_frame(overview, views, goals)
 
     def close(self) -> None:
         if getattr(self, "_client", None) is not None:
@@ -179,6 +188,7 @@ class MurmEnv(gym.Env):
     def _observation(self) -> dict[str, Any]:
         ee = self._robot.ee_position()
         pixels = self._rig.render_all(ee) | {k: v.copy() for k, v in self._goal_pixels.items()}
+        self._pixels = pixels
         agent_pos = np.append(ee, self._robot.finger_width()).astype(np.float32)
         env_state = np.concatenate([self._task.object_position(self._client), self._task.goal_position])
         return {"pixels": pixels, "agent_pos": agent_pos, "environment_state": env_state.astype(np.float32)}

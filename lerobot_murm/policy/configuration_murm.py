@@ -17,6 +17,7 @@ import torch
 from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig, OptimizerConfig
 
+from lerobot_murm.device import resolve_device
 from lerobot_murm.policy.precision import PRECISIONS
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
 
@@ -135,6 +136,8 @@ class MurmConfig(PreTrainedConfig):
     push_to_hub: bool = False
 
     def __post_init__(self) -> None:
+        if not self.device:  # CUDA if present, else CPU: chosen here, as LeRobot would warn on every CPU-only start
+            self.device = resolve_device("auto").type
         super().__post_init__()
         if self.method not in METHODS:
             raise ValueError(f"unknown method {self.method!r}; choose one of {list(METHODS)}")

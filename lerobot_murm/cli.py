@@ -32,6 +32,7 @@ def _collect(args: argparse.Namespace) -> None:
         noise_std=args.noise_std,
         resume=args.resume,
         overwrite=args.overwrite,
+        flush_every=args.flush_every,
     )
     try:
         summary = collect(config)
@@ -167,7 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "0.1 is the paper's std, --noisy-fraction 0 the clean expert)")
     col.add_argument("--noisy-fraction", type=float, default=1.0, help="share of noisy episodes (default: 1)")
     col.add_argument("--resume", action="store_true", help="carry on an interrupted or shorter collection")
-    col.add_argument("--overwrite", action="store_true", help="delete an existing dataset at --root first")
+    col.add_argument("--overwrite", action="store_true", help="delete an existing murm dataset at --root first")
+    col.add_argument("--flush-every", type=int, default=10,
+                     help="episodes between flushes to disk: the most a hard stop loses (default: %(default)s)")
     col.add_argument("--push-to-hub", action="store_true", help="push to --repo-id when done")
     col.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
     col.set_defaults(func=_collect)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from pathlib import Path
 
 
@@ -16,7 +18,6 @@ def _demo(args: argparse.Namespace) -> None:
 
 def _collect(args: argparse.Namespace) -> None:
     from lerobot_murm.collection import CollectConfig, collect
-    from lerobot_murm.collection.collect import CollectionInterrupted
 
     config = CollectConfig(
         task=args.task,
@@ -34,50 +35,43 @@ def _collect(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
         flush_every=args.flush_every,
     )
-    try:
-        summary = collect(config)
-    except CollectionInterrupted as stop:
-        raise SystemExit(f"murm collect: {stop}") from None
+    summary = collect(config)
     print(f"{summary['episodes']} episodes in {config.root}, expert success {summary['success_rate']:.1%}")
     if args.push_to_hub:
         _push(argparse.Namespace(root=args.root, repo_id=config.repo_id, private=args.private))
 
 
 def _push(args: argparse.Namespace) -> None:
-    from lerobot_murm.collection.hub import HubUnavailable, push_dataset
+    from lerobot_murm.collection.hub import push_dataset
 
-    try:
-        push_dataset(Path(args.root), args.repo_id, private=args.private)
-    except HubUnavailable as error:
-        raise SystemExit(f"murm push: {error}") from None
+    push_dataset(Path(args.root), args.repo_id, private=args.private)
     print(f"pushed {args.root} to https://huggingface.co/datasets/{args.repo_id}")
 
 
 def _pull(args: argparse.Namespace) -> None:
-    from lerobot_murm.collection.hub import HubUnavailable, pull_dataset
+    from lerobot_murm.checks import check_writable
+    from lerobot_murm.collection.hub import pull_dataset
 
-    try:
-        dataset = pull_dataset(args.repo_id, Path(args.root))
-    except HubUnavailable as error:
-        raise SystemExit(f"murm pull: {error}") from None
+    check_writable(Path(args.root))
+    dataset = pull_dataset(args.repo_id, Path(args.root))
     print(f"pulled {args.repo_id} into {args.root}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames")
 
 
 def _train_vqvae(args: argparse.Namespace) -> None:
     from dataclasses import replace
 
-    from lerobot_murm.stopping import TrainingInterrupted
+    from lerobot_murm.checks import check_writable
+    from lerobot_murm.env.cameras import validate_camera_names
     from lerobot_murm.vqvae import VQVAEConfig
     from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.train import train_vqvae
 
+    validate_camera_names([args.camera])
+    config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
     repo_id, root = dataset_location(args.dataset)
     out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{args.camera}")
-    config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
-    try:
-        metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
-    except TrainingInterrupted as stop:
-        raise SystemExit(f"murm train-vqvae: {stop} (the encoder so far is saved in {out})") from None
+    check_writable(out)
+    metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
     held = metrics["heldout"]
     print(
         f"{args.camera}: held-out PSNR {held['psnr_db']:.1f} dB (MSE {held['mse']:.5f}), codebook perplexity "
@@ -88,13 +82,19 @@ def _train_vqvae(args: argparse.Namespace) -> None:
 def _encode(args: argparse.Namespace) -> None:
     import json
 
+    from lerobot_murm.checks import check_writable
     from lerobot_murm.collection.dataset import episode_successes
-    from lerobot_murm.vqvae.frames import dataset_location
+    from lerobot_murm.vqvae.frames import dataset_location, open_dataset
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
     from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances, public_statistics, save_beside_encoder
 
     repo_id, root = dataset_location(args.dataset)
     cache_dir = Path(args.cache_dir)
+    check_writable(cache_dir)
+    missing = [e for e in args.encoders if not (Path(e) / "config.json").is_file()]
+    if missing:
+        raise FileNotFoundError(f"no VQ-VAE checkpoint in {missing[0]} (no config.json); train one with murm train-vqvae")
+    open_dataset(repo_id, root)  # a missing or unreadable dataset fails here, in one line
     successes = episode_successes(repo_id, root)
     stats = []
     for encoder in args.encoders:
@@ -110,13 +110,8 @@ def _encode(args: argparse.Namespace) -> None:
 
 def _train(args: argparse.Namespace) -> None:
     from lerobot_murm.policy.train import load_train_config, train
-    from lerobot_murm.stopping import TrainingInterrupted
 
-    config = load_train_config(args.config, args.overrides)
-    try:
-        summary = train(config)
-    except TrainingInterrupted as stop:
-        raise SystemExit(f"murm train: {stop}") from None
+    summary = train(load_train_config(args.config, args.overrides))
     for row in summary["final"]:
         print(f"{summary['task']} {summary['method']} {'+'.join(summary['cameras'])} masking {row['mask_p']:.0%}: "
               f"success {100 * row['success_rate']:.1f} % over {row['episodes']} episodes")
@@ -130,13 +125,15 @@ def _reproduce(args: argparse.Namespace) -> None:
     try:
         out = reproduce(load_reproduce_config(args.config, args.overrides))
     except TrainingInterrupted as stop:
-        raise SystemExit(f"murm reproduce: {stop}; finished cells are kept") from None
+        raise TrainingInterrupted(f"{stop}; finished cells are kept") from None
     print(f"tables and figures: {out}")
 
 
 def _report(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.report import update_readme, write_report
 
+    if not Path(args.results).is_dir():
+        raise FileNotFoundError(f"no results folder {args.results} (murm reproduce writes it)")
     preface = Path(args.preface).read_text() if args.preface else ""
     print(f"wrote {write_report(Path(args.results), Path(args.out), preface)}")
     if args.readme and Path(args.readme).exists():
@@ -144,9 +141,17 @@ def _report(args: argparse.Namespace) -> None:
         print(f"{args.readme}: results of {', '.join(filled) or 'no grid'} refreshed")
 
 
+class OneLineErrors(argparse.ArgumentParser):
+    """A subcommand's bad arguments in one line (exit 2) instead of its whole usage."""
+
+    def error(self, message: str) -> None:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="murm", description="MURM: multi-view goal-conditioned offline RL")
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser.add_argument("--debug", action="store_true", help=f"errors show their traceback (or set {DEBUG_VARIABLE}=1)")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineErrors)
 
     demo = commands.add_parser("demo", help="render every task's cameras and goals, run one expert episode each")
     demo.add_argument("--out", default="outputs/demo", help="folder for the PNGs (default: %(default)s)")
@@ -230,13 +235,54 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+DEBUG_VARIABLE = "MURM_DEBUG"  # set to 1: errors show their traceback, as with --debug
+
+
+def _exit_code(error: Exception) -> int | None:
+    """2 for bad input (usage), 1 for a failure the user can act on, None for a bug
+    (which keeps its traceback)."""
+    from draccus.utils import DecodingError, ParsingError
+
+    from lerobot_murm.checkpointing import CheckpointError
+    from lerobot_murm.collection.collect import CollectionInterrupted
+    from lerobot_murm.collection.durability import UnrepairableCollection
+    from lerobot_murm.collection.hub import HubUnavailable
+    from lerobot_murm.stopping import TrainingInterrupted
+    from lerobot_murm.vqvae.frames import UnreadableDataset
+
+    if isinstance(error, ValueError | DecodingError | ParsingError):
+        return 2
+    failures = (OSError, CheckpointError, CollectionInterrupted, UnrepairableCollection, HubUnavailable,
+                TrainingInterrupted, UnreadableDataset)
+    return 1 if isinstance(error, failures) else None
+
+
+def _one_line(error: Exception) -> str:
+    text = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+    if isinstance(error, OSError) and error.filename and str(error.filename) not in text:
+        text = f"{text}: {error.filename}"
+    return text or type(error).__name__
+
+
 def main(argv: list[str] | None = None) -> None:
+    """Run a command; its errors end in one line on stderr (exit 2: bad input, 1: failure)."""
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    debug = args.debug or "--debug" in extra or os.environ.get(DEBUG_VARIABLE, "") not in ("", "0")
+    extra = [e for e in extra if e != "--debug"]
     if extra and not getattr(args, "accepts_overrides", False):
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        print(f"murm {args.command}: error: unrecognized arguments: {' '.join(extra)} (see murm {args.command} --help)",
+              file=sys.stderr)
+        raise SystemExit(2)
     args.overrides = extra
-    args.func(args)
+    try:
+        args.func(args)
+    except Exception as error:
+        code = _exit_code(error)
+        if debug or code is None:
+            raise
+        print(f"murm {args.command}: {_one_line(error)} (--debug shows where)", file=sys.stderr)
+        raise SystemExit(code) from None
 
 
 if __name__ == "__main__":

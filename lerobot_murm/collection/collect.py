@@ -17,6 +17,8 @@ collection writes the same files as an unbroken one. Workers exit when the main 
 from __future__ import annotations
 
 import math
+import multiprocessing
+import multiprocessing.connection
 import os
 import shutil
 import signal
@@ -163,7 +165,9 @@ def _flush(dataset: LeRobotDataset, config: CollectConfig, successes: list[bool]
     """Close the files (footers written), record them, and go on in new files."""
     dataset.finalize()
     murm_dataset.write_summary(config.root, config.recipe, np.array(successes, bool), config.episodes)
-    return LeRobotDataset.resume(config.repo_id, root=config.root)
+    resumed = LeRobotDataset.resume(config.repo_id, root=config.root)
+    datasets.disable_progress_bars()  # LeRobot turns them back on
+    return resumed
 
 
 def _open_dataset(config: CollectConfig) -> LeRobotDataset:
@@ -241,14 +245,13 @@ def _episodes(config: CollectConfig, indices: range) -> Iterator[StagedEpisode]:
 
 def _start_worker() -> None:
     """Workers leave Ctrl-C to the main process, which stops them and finalizes the dataset,
-    and exit when it dies (kill -9): their parent, the forkserver, exits with it, which
-    hands them to another parent."""
+    and exit when it dies (kill -9): the connection to it, their parent's sentinel, closes.
+    The forkserver and resource tracker then exit too (the workers held their pipes open)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    parent = os.getppid()
+    sentinel = multiprocessing.parent_process().sentinel
 
     def exit_with_parent() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
+        multiprocessing.connection.wait([sentinel])
         os._exit(1)
 
     threading.Thread(target=exit_with_parent, daemon=True, name="exit-with-parent").start()

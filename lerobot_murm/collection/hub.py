@@ -28,6 +28,8 @@ class HubUnavailable(RuntimeError):
 def push_dataset(root: Path, repo_id: str, private: bool = False) -> str:
     """Upload the dataset at `root` as `repo_id`, with the MURM card; returns the card text."""
     root = Path(root)
+    if not (root / SUMMARY_FILE).is_file():
+        raise FileNotFoundError(f"{root} is not a dataset `murm collect` made (no {SUMMARY_FILE})")
     summary = json.loads((root / SUMMARY_FILE).read_text())
     card = render_card(summary, repo_id)
     dataset = LeRobotDataset(repo_id, root=root, video_backend="pyav")

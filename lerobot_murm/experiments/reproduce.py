@@ -22,6 +22,7 @@ from pathlib import Path
 import draccus
 import torch
 
+from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import episode_successes, read_recipe
 from lerobot_murm.device import resolve_device
@@ -197,6 +198,8 @@ def _median_steps_per_s(path: Path) -> float:
 
 
 def reproduce(config: ReproduceConfig) -> Path:
+    for folder in (config.work_dir, config.results_dir):
+        check_writable(Path(folder))
     device = str(resolve_device(config.device))
     out = Path(config.results_dir) / config.name
     out.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,7 @@ from lerobot_murm.checkpointing import (
 )
 from lerobot_murm.checks import check_writable
 from lerobot_murm.device import resolve_device
+from lerobot_murm.env import TASK_NAMES
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
 from lerobot_murm.policy.learning_curve import plot_learning_curve
@@ -82,8 +83,18 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.policy, MurmConfig):
             raise ValueError("the config needs a `policy:` section with `type: murm`")
-        if self.steps < 1 or self.batch_size < 1 or self.eval_every < 1 or self.log_every < 1:
-            raise ValueError("steps, batch_size, eval_every and log_every must be positive")
+        if self.task not in TASK_NAMES:
+            raise ValueError(f"unknown task {self.task!r}; valid tasks: {list(TASK_NAMES)}")
+        counts = {"steps": self.steps, "batch_size": self.batch_size, "eval_every": self.eval_every,
+                  "log_every": self.log_every, "eval_episodes": self.eval_episodes,
+                  "final_eval_episodes": self.final_eval_episodes, "eval_envs": self.eval_envs}
+        for name, value in counts.items():
+            if value < 1:
+                raise ValueError(f"{name} must be at least 1, got {value}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if not self.eval_mask_p or not all(0.0 <= p < 1.0 for p in self.eval_mask_p):
+            raise ValueError(f"eval_mask_p must be masking levels in [0, 1), got {self.eval_mask_p}")
         validation = range(self.validation_seed, self.validation_seed + max(self.eval_episodes, self.final_eval_episodes))
         test = range(self.test_seed, self.test_seed + self.final_eval_episodes)
         if min(self.validation_seed, self.test_seed) < 0 or (validation.start < test.stop and test.start < validation.stop):

@@ -241,7 +241,7 @@ DEBUG_VARIABLE = "MURM_DEBUG"  # set to 1: errors show their traceback, as with 
 def _exit_code(error: Exception) -> int | None:
     """2 for bad input (usage), 1 for a failure the user can act on, None for a bug
     (which keeps its traceback)."""
-    from draccus.utils import DecodingError, ParsingError
+    from draccus.utils import DraccusException
 
     from lerobot_murm.checkpointing import CheckpointError
     from lerobot_murm.collection.collect import CollectionInterrupted
@@ -250,11 +250,20 @@ def _exit_code(error: Exception) -> int | None:
     from lerobot_murm.stopping import TrainingInterrupted
     from lerobot_murm.vqvae.frames import UnreadableDataset
 
-    if isinstance(error, ValueError | DecodingError | ParsingError):
+    if isinstance(error, ValueError | DraccusException):
         return 2
     failures = (OSError, CheckpointError, CollectionInterrupted, UnrepairableCollection, HubUnavailable,
                 TrainingInterrupted, UnreadableDataset)
     return 1 if isinstance(error, failures) else None
+
+
+def _unwrap(error: Exception) -> Exception:
+    """What draccus wrapped while decoding a config (a config's own validation error, a missing file)."""
+    from draccus.utils import DraccusException
+
+    while isinstance(error, DraccusException) and isinstance(error.__cause__, Exception):
+        error = error.__cause__
+    return error
 
 
 def _one_line(error: Exception) -> str:
@@ -277,7 +286,8 @@ def main(argv: list[str] | None = None) -> None:
     args.overrides = extra
     try:
         args.func(args)
-    except Exception as error:
+    except Exception as raised:
+        error = _unwrap(raised)
         code = _exit_code(error)
         if debug or code is None:
             raise

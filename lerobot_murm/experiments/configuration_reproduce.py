@@ -132,4 +132,4 @@ class ReproduceConfig:
 
 
 def load_reproduce_config(path: str | Path, overrides: list[str] | None = None) -> ReproduceConfig:
-    return draccus.parse(ReproduceConfig, config_path=str(path), args=overrides or [])
+    return draccus.parse(ReproduceConfig, config_path=str(path), args=overrides or [], exit_on_error=False)

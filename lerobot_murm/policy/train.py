@@ -265,4 +265,4 @@ def train(config: TrainConfig) -> dict:
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
-    return draccus.parse(TrainConfig, config_path=str(path), args=overrides or [])
+    return draccus.parse(TrainConfig, config_path=str(path), args=overrides or [], exit_on_error=False)

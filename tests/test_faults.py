@@ -17,16 +17,8 @@ import torch
 import yaml
 
 from lerobot_murm import checkpointing
-from lerobot_murm.checkpointing import (
-    CheckpointError,
-    append_rows,
-    load_state,
-    recover,
-    save_state,
-    set_aside_rows_after,
-    staging_folder,
-    swap_in,
-)
+from lerobot_murm.checkpointing import CheckpointError, append_rows, load_state, recover, save_state
+from lerobot_murm.checkpointing import set_aside_rows_after, staging_folder, swap_in
 from lerobot_murm.collection import CollectConfig, collect
 
 MURM = Path(sys.executable).parent / "murm"

@@ -205,6 +205,9 @@ def train_vqvae(
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     save_reconstructions(model.cpu(), holdout if len(holdout) else train_images, out_dir / "reconstructions.png")
     if interrupted:
-        raise TrainingInterrupted(f"stopped at step {done} of {config.steps}; run the same command again to resume")
+        raise TrainingInterrupted(
+            f"stopped at step {done} of {config.steps} (the encoder so far is saved in {out_dir}); "
+            "run the same command again to resume"
+        )
     state_path.unlink(missing_ok=True)
     return metrics

@@ -70,7 +70,7 @@ def collect_until_killed(root: Path, episodes: int, flush_every: int, rng: rando
     log = root.with_name("stderr.txt")
     with log.open("w") as stderr:  # a file: an unread pipe could fill and block the run
         process = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=stderr)
-    deadline = time.monotonic() + 300
+    deadline = time.monotonic() + 900  # a liveness bound, generous for a crowded CI machine
     while saved_episodes(root) <= before:
         assert process.poll() is None, f"the collection ended before it could be killed: {log.read_text()[-2000:]}"
         assert time.monotonic() < deadline, f"no flush: {log.read_text()[-2000:]}"
@@ -80,7 +80,7 @@ def collect_until_killed(root: Path, episodes: int, flush_every: int, rng: rando
     assert workers, "no worker processes"
     process.kill()
     process.wait()
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 300  # a liveness bound: they leave within a second on an idle machine
     while any(alive(pid) for pid in workers):
         assert time.monotonic() < deadline, f"processes left behind: {[p for p in workers if alive(p)]}"
         time.sleep(0.1)

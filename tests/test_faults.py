@@ -71,12 +71,16 @@ def collect_until_killed(root: Path, episodes: int, flush_every: int, rng: rando
     with log.open("w") as stderr:  # a file: an unread pipe could fill and block the run
         process = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=stderr)
     deadline = time.monotonic() + 900  # a liveness bound, generous for a crowded CI machine
-    while saved_episodes(root) <= before:
-        assert process.poll() is None, f"the collection ended before it could be killed: {log.read_text()[-2000:]}"
-        assert time.monotonic() < deadline, f"no flush: {log.read_text()[-2000:]}"
-        time.sleep(0.05)
-    time.sleep(rng.uniform(0.0, 1.5))  # anywhere: mid-episode, mid-write, mid-flush
-    workers = descendants(process.pid)
+    try:
+        while saved_episodes(root) <= before:
+            assert process.poll() is None, f"the collection ended before it could be killed: {log.read_text()[-2000:]}"
+            assert time.monotonic() < deadline, f"no flush: {log.read_text()[-2000:]}"
+            time.sleep(0.05)
+        time.sleep(rng.uniform(0.0, 1.5))  # anywhere: mid-episode, mid-write, mid-flush
+        workers = descendants(process.pid)
+    finally:  # a failed test leaves no collection running
+        if process.poll() is None and time.monotonic() >= deadline:
+            process.kill()
     assert workers, "no worker processes"
     process.kill()
     process.wait()

@@ -78,9 +78,9 @@ def collect_until_killed(root: Path, episodes: int, flush_every: int, rng: rando
             time.sleep(0.05)
         time.sleep(rng.uniform(0.0, 1.5))  # anywhere: mid-episode, mid-write, mid-flush
         workers = descendants(process.pid)
-    finally:  # a failed test leaves no collection running
-        if process.poll() is None and time.monotonic() >= deadline:
-            process.kill()
+    except BaseException:  # a failed test leaves no collection running
+        process.kill()
+        raise
     assert workers, "no worker processes"
     process.kill()
     process.wait()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from pathlib import Path
 
 
@@ -16,7 +18,6 @@ def _demo(args: argparse.Namespace) -> None:
 
 def _collect(args: argparse.Namespace) -> None:
     from lerobot_murm.collection import CollectConfig, collect
-    from lerobot_murm.collection.collect import CollectionInterrupted
 
     config = CollectConfig(
         task=args.task,
@@ -32,51 +33,45 @@ def _collect(args: argparse.Namespace) -> None:
         noise_std=args.noise_std,
         resume=args.resume,
         overwrite=args.overwrite,
+        flush_every=args.flush_every,
     )
-    try:
-        summary = collect(config)
-    except CollectionInterrupted as stop:
-        raise SystemExit(f"murm collect: {stop}") from None
+    summary = collect(config)
     print(f"{summary['episodes']} episodes in {config.root}, expert success {summary['success_rate']:.1%}")
     if args.push_to_hub:
         _push(argparse.Namespace(root=args.root, repo_id=config.repo_id, private=args.private))
 
 
 def _push(args: argparse.Namespace) -> None:
-    from lerobot_murm.collection.hub import HubUnavailable, push_dataset
+    from lerobot_murm.collection.hub import push_dataset
 
-    try:
-        push_dataset(Path(args.root), args.repo_id, private=args.private)
-    except HubUnavailable as error:
-        raise SystemExit(f"murm push: {error}") from None
+    push_dataset(Path(args.root), args.repo_id, private=args.private)
     print(f"pushed {args.root} to https://huggingface.co/datasets/{args.repo_id}")
 
 
 def _pull(args: argparse.Namespace) -> None:
-    from lerobot_murm.collection.hub import HubUnavailable, pull_dataset
+    from lerobot_murm.checks import check_writable
+    from lerobot_murm.collection.hub import pull_dataset
 
-    try:
-        dataset = pull_dataset(args.repo_id, Path(args.root))
-    except HubUnavailable as error:
-        raise SystemExit(f"murm pull: {error}") from None
+    check_writable(Path(args.root))
+    dataset = pull_dataset(args.repo_id, Path(args.root))
     print(f"pulled {args.repo_id} into {args.root}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames")
 
 
 def _train_vqvae(args: argparse.Namespace) -> None:
     from dataclasses import replace
 
-    from lerobot_murm.stopping import TrainingInterrupted
+    from lerobot_murm.checks import check_writable
+    from lerobot_murm.env.cameras import validate_camera_names
     from lerobot_murm.vqvae import VQVAEConfig
     from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.train import train_vqvae
 
+    validate_camera_names([args.camera])
+    config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
     repo_id, root = dataset_location(args.dataset)
     out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{args.camera}")
-    config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
-    try:
-        metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
-    except TrainingInterrupted as stop:
-        raise SystemExit(f"murm train-vqvae: {stop} (the encoder so far is saved in {out})") from None
+    check_writable(out)
+    metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
     held = metrics["heldout"]
     print(
         f"{args.camera}: held-out PSNR {held['psnr_db']:.1f} dB (MSE {held['mse']:.5f}), codebook perplexity "
@@ -87,8 +82,9 @@ def _train_vqvae(args: argparse.Namespace) -> None:
 def _encode(args: argparse.Namespace) -> None:
     import json
 
+    from lerobot_murm.checks import check_writable
     from lerobot_murm.collection.dataset import episode_successes
-    from lerobot_murm.vqvae.frames import dataset_location
+    from lerobot_murm.vqvae.frames import dataset_location, open_dataset
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
     from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances, public_statistics, save_beside_encoder
 
@@ -96,6 +92,11 @@ def _encode(args: argparse.Namespace) -> None:
         raise SystemExit(f"murm encode: {args.to_dataset} exists; remove it or choose another --to-dataset folder")
     repo_id, root = dataset_location(args.dataset)
     cache_dir = Path(args.cache_dir)
+    check_writable(cache_dir)
+    missing = [e for e in args.encoders if not (Path(e) / "config.json").is_file()]
+    if missing:
+        raise FileNotFoundError(f"no VQ-VAE checkpoint in {missing[0]} (no config.json); train one with murm train-vqvae")
+    open_dataset(repo_id, root)  # a missing or unreadable dataset fails here, in one line
     successes = episode_successes(repo_id, root)
     stats, caches = [], []
     for encoder in args.encoders:
@@ -131,13 +132,8 @@ def _write_latents(args: argparse.Namespace, repo_id: str, root: Path | None, ca
 
 def _train(args: argparse.Namespace) -> None:
     from lerobot_murm.policy.train import load_train_config, train
-    from lerobot_murm.stopping import TrainingInterrupted
 
-    config = load_train_config(args.config, args.overrides)
-    try:
-        summary = train(config)
-    except TrainingInterrupted as stop:
-        raise SystemExit(f"murm train: {stop}") from None
+    summary = train(load_train_config(args.config, args.overrides))
     for row in summary["final"]:
         print(f"{summary['task']} {summary['method']} {'+'.join(summary['cameras'])} masking {row['mask_p']:.0%}: "
               f"success {100 * row['success_rate']:.1f} % over {row['episodes']} episodes")
@@ -150,17 +146,14 @@ def _reproduce(args: argparse.Namespace) -> None:
     from lerobot_murm.stopping import TrainingInterrupted
 
     config = load_reproduce_config(args.config, args.overrides)
-    try:
-        executor = make_executor(args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task,
-                                 args.shard_episodes)
-    except ValueError as error:
-        raise SystemExit(f"murm reproduce: {error}") from None
+    executor = make_executor(args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task,
+                             args.shard_episodes)  # a bad flag: ValueError, one line
     try:
         out = reproduce(config, executor)
     except TrainingInterrupted as stop:
-        raise SystemExit(f"murm reproduce: {stop}; finished cells are kept") from None
+        raise TrainingInterrupted(f"{stop}; finished cells are kept") from None
     except KeyboardInterrupt:  # the driver of --jobs / --executor ray; its jobs save their checkpoints
-        raise SystemExit("murm reproduce: stopped; finished cells are kept, run the same command again to resume") from None
+        raise TrainingInterrupted("stopped; finished cells are kept, run the same command again to resume") from None
     finally:
         executor.close()
     print(f"tables and figures: {out}")
@@ -169,6 +162,8 @@ def _reproduce(args: argparse.Namespace) -> None:
 def _report(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.report import update_readme, write_report
 
+    if not Path(args.results).is_dir():
+        raise FileNotFoundError(f"no results folder {args.results} (murm reproduce writes it)")
     preface = Path(args.preface).read_text() if args.preface else ""
     print(f"wrote {write_report(Path(args.results), Path(args.out), preface)}")
     if args.readme and Path(args.readme).exists():
@@ -176,9 +171,17 @@ def _report(args: argparse.Namespace) -> None:
         print(f"{args.readme}: results of {', '.join(filled) or 'no grid'} refreshed")
 
 
+class OneLineErrors(argparse.ArgumentParser):
+    """A subcommand's bad arguments in one line (exit 2) instead of its whole usage."""
+
+    def error(self, message: str) -> None:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="murm", description="MURM: multi-view goal-conditioned offline RL")
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser.add_argument("--debug", action="store_true", help=f"errors show their traceback (or set {DEBUG_VARIABLE}=1)")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=OneLineErrors)
 
     demo = commands.add_parser("demo", help="render every task's cameras and goals, run one expert episode each")
     demo.add_argument("--out", default="outputs/demo", help="folder for the PNGs (default: %(default)s)")
@@ -200,7 +203,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "0.1 is the paper's std, --noisy-fraction 0 the clean expert)")
     col.add_argument("--noisy-fraction", type=float, default=1.0, help="share of noisy episodes (default: 1)")
     col.add_argument("--resume", action="store_true", help="carry on an interrupted or shorter collection")
-    col.add_argument("--overwrite", action="store_true", help="delete an existing dataset at --root first")
+    col.add_argument("--overwrite", action="store_true", help="delete an existing murm dataset at --root first")
+    col.add_argument("--flush-every", type=int, default=10,
+                     help="episodes between flushes to disk: the most a hard stop loses (default: %(default)s)")
     col.add_argument("--push-to-hub", action="store_true", help="push to --repo-id when done")
     col.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
     col.set_defaults(func=_collect)
@@ -273,13 +278,64 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+DEBUG_VARIABLE = "MURM_DEBUG"  # set to 1: errors show their traceback, as with --debug
+
+
+def _exit_code(error: Exception) -> int | None:
+    """2 for bad input (usage), 1 for a failure the user can act on, None for a bug
+    (which keeps its traceback)."""
+    from draccus.utils import DraccusException
+
+    from lerobot_murm.checkpointing import CheckpointError
+    from lerobot_murm.collection.collect import CollectionInterrupted
+    from lerobot_murm.collection.durability import UnrepairableCollection
+    from lerobot_murm.collection.hub import HubUnavailable
+    from lerobot_murm.stopping import TrainingInterrupted
+    from lerobot_murm.vqvae.frames import UnreadableDataset
+
+    if isinstance(error, ValueError | DraccusException):
+        return 2
+    failures = (OSError, CheckpointError, CollectionInterrupted, UnrepairableCollection, HubUnavailable,
+                TrainingInterrupted, UnreadableDataset)
+    return 1 if isinstance(error, failures) else None
+
+
+def _unwrap(error: Exception) -> Exception:
+    """What draccus wrapped while decoding a config (a config's own validation error, a missing file)."""
+    from draccus.utils import DraccusException
+
+    while isinstance(error, DraccusException) and isinstance(error.__cause__, Exception):
+        error = error.__cause__
+    return error
+
+
+def _one_line(error: Exception) -> str:
+    text = " ".join(line.strip() for line in str(error).splitlines() if line.strip())
+    if isinstance(error, OSError) and error.filename and str(error.filename) not in text:
+        text = f"{text}: {error.filename}"
+    return text or type(error).__name__
+
+
 def main(argv: list[str] | None = None) -> None:
+    """Run a command; its errors end in one line on stderr (exit 2: bad input, 1: failure)."""
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    debug = args.debug or "--debug" in extra or os.environ.get(DEBUG_VARIABLE, "") not in ("", "0")
+    extra = [e for e in extra if e != "--debug"]
     if extra and not getattr(args, "accepts_overrides", False):
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
+        print(f"murm {args.command}: error: unrecognized arguments: {' '.join(extra)} (see murm {args.command} --help)",
+              file=sys.stderr)
+        raise SystemExit(2)
     args.overrides = extra
-    args.func(args)
+    try:
+        args.func(args)
+    except Exception as raised:
+        error = _unwrap(raised)
+        code = _exit_code(error)
+        if debug or code is None:
+            raise
+        print(f"murm {args.command}: {_one_line(error)} (--debug shows where)", file=sys.stderr)
+        raise SystemExit(code) from None
 
 
 if __name__ == "__main__":

@@ -6,13 +6,23 @@ number of workers. Ctrl-C,
 SIGTERM or a dead worker stop the run cleanly: the episodes already written are
 finalized into a valid dataset, the half-done ones are dropped, and `resume=True`
 carries on to the requested count.
+
+A hard stop (kill -9, power loss, a full disk) loses at most the episodes since the last
+flush: every `flush_every` episodes (10 by default, about 10 s with two workers) the
+files are closed and a snapshot is recorded; `resume=True` first restores the dataset to
+that snapshot (durability.py). Flushes fall on multiples of `flush_every`, so a resumed
+collection writes the same files as an unbroken one. Workers exit when the main process dies.
 """
 
 from __future__ import annotations
 
+import math
+import multiprocessing
+import multiprocessing.connection
 import os
 import shutil
 import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -27,7 +37,9 @@ import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from tqdm import tqdm
 
+from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import dataset as murm_dataset
+from lerobot_murm.collection.durability import restore
 from lerobot_murm.collection.dataset import StagedEpisode
 from lerobot_murm.collection.episodes import EpisodeRecipe, run_episode
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES, MurmEnv
@@ -52,6 +64,7 @@ class CollectConfig:
     resume: bool = False
     overwrite: bool = False
     first_episode: int = 0  # a shard of a larger collection holds episodes first_episode, first_episode + 1, ...
+    flush_every: int = 10  # episodes between flushes: the most a hard stop can lose
 
     def __post_init__(self) -> None:
         if self.task not in TASK_NAMES:
@@ -62,11 +75,15 @@ class CollectConfig:
             raise ValueError(f"episodes must be at least 1, got {self.episodes}")
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, got {self.workers}")
-        if self.noise_k < 0:
-            raise ValueError(f"noise_k must be >= 0, got {self.noise_k}")
+        if self.flush_every < 1:
+            raise ValueError(f"flush_every must be at least 1, got {self.flush_every}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if not (math.isfinite(self.noise_k) and self.noise_k >= 0):
+            raise ValueError(f"noise_k must be a finite number >= 0, got {self.noise_k}")
         if self.noise_std is None:
             self.noise_std = default_noise_std(self.task)
-        if not np.isfinite(self.noise_std) or self.noise_std < 0:
+        if not (math.isfinite(self.noise_std) and self.noise_std >= 0):
             raise ValueError(f"noise_std must be a finite number >= 0, got {self.noise_std}")
         if not 0.0 <= self.noisy_fraction <= 1.0:
             raise ValueError(f"noisy_fraction must be in [0, 1], got {self.noisy_fraction}")
@@ -97,39 +114,48 @@ class CollectionInterrupted(RuntimeError):
 def collect(config: CollectConfig) -> dict:
     """Collect `config.episodes` episodes into `config.root`; returns the collection summary."""
     dataset = _open_dataset(config)
-    done = dataset.meta.total_episodes
+    summary = murm_dataset.read_summary(config.root)
+    if "episode_success" in summary:
+        successes = list(summary["episode_success"])
+    else:  # a collection from before flushing
+        successes = list(murm_dataset.episode_successes(config.repo_id, config.root))
+    done = len(successes)
     description = TASK_DESCRIPTIONS[config.task]
 
     datasets.disable_progress_bars()  # one bar per episode write would drown ours
-    stop_reason = None
+    stop_reason, write_error = None, None
     start = time.perf_counter()
     progress = tqdm(total=config.episodes, initial=done, desc=f"collect {config.task}", unit="ep")
-    successes = 0
     with _deferred_stop_signals() as stop_requested:
         try:
             for written, episode in enumerate(_episodes(config, range(config.first_episode + done, config.first_episode + config.episodes)), start=1):
                 murm_dataset.save_staged_episode(dataset, episode, description)  # never cut in half
-                successes += episode.succeeded
+                successes.append(episode.succeeded)
                 progress.set_postfix(
-                    ep_per_s=f"{written / (time.perf_counter() - start):.2f}", success=f"{successes / written:.0%}"
+                    ep_per_s=f"{written / (time.perf_counter() - start):.2f}",
+                    success=f"{np.mean(successes[done:]):.0%}",
                 )
                 progress.update(1)
                 if stop_requested():
                     stop_reason = "interrupted"
                     break
+                if len(successes) % config.flush_every == 0 and len(successes) < config.episodes:
+                    dataset = _flush(dataset, config, successes)
         except BrokenProcessPool:
             stop_reason = "a worker process died"
+        except OSError as error:  # a full disk: what was flushed stays, --resume repairs the rest
+            write_error = error
         finally:
             progress.close()
-            dataset.finalize()
             shutil.rmtree(murm_dataset.staging_root(config.root), ignore_errors=True)  # unsaved work
-
-    summary = murm_dataset.write_summary(
-        config.root,
-        config.recipe,
-        murm_dataset.episode_successes(config.repo_id, config.root),
-        config.episodes,
-    )
+    if write_error is not None:
+        saved = murm_dataset.read_summary(config.root)["episodes"]
+        raise CollectionInterrupted(
+            f"cannot write to {config.root} ({write_error.strerror or write_error}): {saved} of {config.episodes} "
+            "episodes are safely saved; make room, then run again with --resume to carry on"
+        ) from write_error
+    dataset.finalize()
+    summary = murm_dataset.write_summary(config.root, config.recipe, np.array(successes, bool), config.episodes)
     if stop_reason:
         raise CollectionInterrupted(
             f"{stop_reason}: {summary['episodes']} of {config.episodes} episodes are saved in {config.root}; "
@@ -138,33 +164,56 @@ def collect(config: CollectConfig) -> dict:
     return summary
 
 
+def _flush(dataset: LeRobotDataset, config: CollectConfig, successes: list[bool]) -> LeRobotDataset:
+    """Close the files (footers written), record them, and go on in new files."""
+    dataset.finalize()
+    murm_dataset.write_summary(config.root, config.recipe, np.array(successes, bool), config.episodes)
+    resumed = LeRobotDataset.resume(config.repo_id, root=config.root)
+    datasets.disable_progress_bars()  # LeRobot turns them back on
+    return resumed
+
+
 def _open_dataset(config: CollectConfig) -> LeRobotDataset:
     root = config.root
+    check_writable(root)
     if root.exists() and config.overwrite:
-        shutil.rmtree(root)
+        _remove_collection(root)
+    if root.exists() and not any(root.iterdir()):
+        root.rmdir()  # an empty folder is as good as none
     if root.exists():
         if not config.resume:
             raise FileExistsError(
                 f"{root} already exists; pass --resume to carry on collecting or --overwrite to replace it"
             )
-        stored = murm_dataset.read_recipe(root)
-        if stored is None:
+        summary = murm_dataset.read_summary(root)
+        if summary is None:
             raise ValueError(f"{root} is not a murm collection (no {murm_dataset.SUMMARY_FILE})")
+        stored = murm_dataset.read_recipe(root)
         if stored != config.recipe:
             raise ValueError(f"cannot resume: {root} was collected with {stored}, not {config.recipe}")
+        removed = restore(root, summary["flushed"], murm_dataset.SUMMARY_FILE) if "flushed" in summary else 0
+        if removed:
+            print(f"{root}: removed {removed} files written after the last flush ({summary['episodes']} episodes kept)")
         return LeRobotDataset.resume(config.repo_id, root=root, video_backend="pyav")
-    _check_writable(root)
-    dataset = murm_dataset.create_dataset(config.repo_id, root, config.recipe)
-    murm_dataset.write_summary(root, config.recipe, successes=np.zeros(0, bool), requested=config.episodes)
-    return dataset
+    # made beside its final place and renamed, so `root` never exists without its summary
+    building = root.with_name(root.name + ".creating")
+    shutil.rmtree(building, ignore_errors=True)
+    murm_dataset.create_dataset(config.repo_id, building, config.recipe).finalize()
+    murm_dataset.write_summary(building, config.recipe, successes=np.zeros(0, bool), requested=config.episodes)
+    building.rename(root)
+    return LeRobotDataset.resume(config.repo_id, root=root, video_backend="pyav")
 
 
-def _check_writable(root: Path) -> None:
-    parent = root.parent
-    while not parent.exists():
-        parent = parent.parent
-    if not os.access(parent, os.W_OK):
-        raise PermissionError(f"cannot create {root}: {parent} is not writable")
+def _remove_collection(root: Path) -> None:
+    """`--overwrite`: delete a folder only if murm made it (it has the collection summary)."""
+    if not root.is_dir() or not (root / murm_dataset.SUMMARY_FILE).is_file():
+        if root.is_dir() and not any(root.iterdir()):
+            return
+        raise FileExistsError(
+            f"--overwrite refused: {root} is not a murm collection (no {murm_dataset.SUMMARY_FILE}); "
+            "delete it yourself if you mean it"
+        )
+    shutil.rmtree(root)
 
 
 def simulate_and_stage(recipe: EpisodeRecipe, index: int, dataset_root: Path) -> StagedEpisode:
@@ -181,7 +230,7 @@ def _episodes(config: CollectConfig, indices: range) -> Iterator[StagedEpisode]:
             yield simulate_and_stage(recipe, index, config.root)
         return
     context = get_context("forkserver")
-    with ProcessPoolExecutor(config.workers, mp_context=context, initializer=_ignore_sigint) as pool:
+    with ProcessPoolExecutor(config.workers, mp_context=context, initializer=_start_worker) as pool:
         pending: dict[int, Future] = {}
         upcoming = iter(indices)
         try:
@@ -197,9 +246,18 @@ def _episodes(config: CollectConfig, indices: range) -> Iterator[StagedEpisode]:
                 future.cancel()
 
 
-def _ignore_sigint() -> None:
-    """Workers leave Ctrl-C to the main process, which stops them and finalizes the dataset."""
+def _start_worker() -> None:
+    """Workers leave Ctrl-C to the main process, which stops them and finalizes the dataset,
+    and exit when it dies (kill -9): the connection to it, their parent's sentinel, closes.
+    The forkserver and resource tracker then exit too (the workers held their pipes open)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sentinel = multiprocessing.parent_process().sentinel
+
+    def exit_with_parent() -> None:
+        multiprocessing.connection.wait([sentinel])
+        os._exit(1)
+
+    threading.Thread(target=exit_with_parent, daemon=True, name="exit-with-parent").start()
 
 
 @contextmanager

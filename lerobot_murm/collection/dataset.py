@@ -23,6 +23,8 @@ import numpy as np
 from lerobot.datasets.image_writer import write_image
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from lerobot_murm.checkpointing import write_atomic
+from lerobot_murm.collection.durability import snapshot
 from lerobot_murm.collection.episodes import Episode, EpisodeRecipe
 from lerobot_murm.env import goal_key
 from lerobot_murm.env.murm_env import CONTROL_FPS
@@ -151,19 +153,28 @@ def episode_successes(repo_id: str, root: Path) -> np.ndarray:
 
 
 def write_summary(root: Path, recipe: EpisodeRecipe, successes: np.ndarray, requested: int) -> dict:
+    """The collection summary, written last and atomically after a `finalize()`: with the
+    snapshot `durability.restore` repairs a hard stop from (see durability.py)."""
     summary = {
         "recipe": asdict(recipe),
         "episodes": int(len(successes)),
         "requested_episodes": requested,
         "success_rate": float(successes.mean()) if len(successes) else None,
+        "episode_success": [bool(s) for s in successes],
+        "flushed": snapshot(root, SUMMARY_FILE),
     }
-    (root / SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
+    write_atomic(root / SUMMARY_FILE, (json.dumps(summary, indent=2) + "\n").encode())
     return summary
 
 
-def read_recipe(root: Path) -> EpisodeRecipe | None:
+def read_summary(root: Path) -> dict | None:
     path = root / SUMMARY_FILE
-    if not path.exists():
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def read_recipe(root: Path) -> EpisodeRecipe | None:
+    summary = read_summary(root)
+    if summary is None:
         return None
-    recipe = json.loads(path.read_text())["recipe"]
+    recipe = summary["recipe"]
     return EpisodeRecipe(**{"scene": 1, **recipe, "cameras": tuple(recipe["cameras"])})  # 1: before versions

@@ -30,6 +30,8 @@ def push_dataset(root: Path, repo_id: str, private: bool = False) -> str:
     """Upload the demonstrations or latent dataset at `root` as `repo_id`, with its MURM card;
     returns the card text."""
     root = Path(root)
+    if not (root / SUMMARY_FILE).is_file() and not (root / LATENTS_FILE).is_file():
+        raise FileNotFoundError(f"{root} is not a dataset `murm collect` or `murm encode --to-dataset` made")
     dataset = LeRobotDataset(repo_id, root=root, video_backend="pyav")
     if (root / LATENTS_FILE).exists():
         card = render_latent_card(json.loads((root / LATENTS_FILE).read_text()), dataset.meta.total_episodes, repo_id)

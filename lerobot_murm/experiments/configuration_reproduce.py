@@ -92,7 +92,44 @@ class ReproduceConfig:
         labels = [c.label for c in self.cells]
         if len(set(labels)) != len(labels):
             raise ValueError(f"cell labels must be unique, got {labels}")
+        if not self.seeds or min(self.seeds) < 0:
+            raise ValueError(f"seeds must be a non-empty list of numbers >= 0, got {self.seeds}")
+        self.validate_stages()
+
+    def validate_stages(self) -> None:
+        """Every stage's config of every cell, built as the grid will build it (no disk): a
+        bad method, camera, policy field or number fails now, not after hours of collection."""
+        from lerobot_murm.collection import CollectConfig
+        from lerobot_murm.policy.configuration_murm import MurmConfig
+        from lerobot_murm.policy.train import TrainConfig
+        from lerobot_murm.vqvae import VQVAEConfig
+
+        unknown = [c for c in self.vqvae.camera_steps if c not in CAMERA_NAMES]
+        if unknown:
+            raise ValueError(f"vqvae.camera_steps: unknown cameras {unknown}; choose from {list(CAMERA_NAMES)}")
+        for steps in {self.vqvae.steps, *self.vqvae.camera_steps.values()}:
+            VQVAEConfig(steps=steps, batch_size=self.vqvae.batch_size)
+        c, t = self.collection, self.train
+        for cell in self.cells:
+            try:
+                epsilon = cell.epsilon if cell.epsilon is not None else [1.0] * len(cell.cameras)  # read later
+                policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), epsilon=epsilon,
+                                    encoders={camera: {} for camera in cell.cameras}, device="cpu", **cell.policy)
+                for task in self.tasks:
+                    CollectConfig(
+                        task=task, root=Path(self.work_dir), episodes=cell.episodes or c.episodes, workers=c.workers,
+                        image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,
+                        noisy_fraction=c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction,
+                    )
+                    TrainConfig(
+                        dataset="", task=task, policy=policy, steps=t.steps, batch_size=t.batch_size,
+                        log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
+                        final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p),
+                        eval_envs=t.eval_envs, seed=min(self.seeds),
+                    )
+            except (TypeError, ValueError) as error:
+                raise ValueError(f"cell {cell.label}: {error}") from error
 
 
 def load_reproduce_config(path: str | Path, overrides: list[str] | None = None) -> ReproduceConfig:
-    return draccus.parse(ReproduceConfig, config_path=str(path), args=overrides or [])
+    return draccus.parse(ReproduceConfig, config_path=str(path), args=overrides or [], exit_on_error=False)

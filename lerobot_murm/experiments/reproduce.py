@@ -24,6 +24,7 @@ from pathlib import Path
 import draccus
 import torch
 
+from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import episode_successes
 from lerobot_murm.collection.shards import collect_shard, is_complete, merge_shards, shard_ranges
@@ -224,6 +225,8 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     """Run the grid's unfinished runs on `executor` (default: one after another in this
     process): datasets, then encoders, then training runs, each stage's jobs side by side."""
     executor = executor or SerialExecutor()
+    for folder in (config.work_dir, config.results_dir):
+        check_writable(Path(folder))
     out = Path(config.results_dir) / config.name
     out.mkdir(parents=True, exist_ok=True)
     draccus.dump(config, (out / "config.yaml").open("w"))

@@ -14,9 +14,7 @@ and `final_eval.json`.
 
 from __future__ import annotations
 
-import csv
 import json
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +27,21 @@ from lerobot.utils.feature_utils import dataset_to_policy_features
 from lerobot.configs import FeatureType
 from tqdm import tqdm
 
+from lerobot_murm.checkpointing import (
+    COMPLETE_MARK,
+    CheckpointError,
+    append_rows,
+    last_logged_step,
+    load_state,
+    recover,
+    save_state,
+    set_aside_rows_after,
+    staging_folder,
+    swap_in,
+)
+from lerobot_murm.checks import check_writable
 from lerobot_murm.device import resolve_device
+from lerobot_murm.env import TASK_NAMES
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
 from lerobot_murm.policy.learning_curve import plot_learning_curve
@@ -71,8 +83,18 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.policy, MurmConfig):
             raise ValueError("the config needs a `policy:` section with `type: murm`")
-        if self.steps < 1 or self.batch_size < 1 or self.eval_every < 1 or self.log_every < 1:
-            raise ValueError("steps, batch_size, eval_every and log_every must be positive")
+        if self.task not in TASK_NAMES:
+            raise ValueError(f"unknown task {self.task!r}; valid tasks: {list(TASK_NAMES)}")
+        counts = {"steps": self.steps, "batch_size": self.batch_size, "eval_every": self.eval_every,
+                  "log_every": self.log_every, "eval_episodes": self.eval_episodes,
+                  "final_eval_episodes": self.final_eval_episodes, "eval_envs": self.eval_envs}
+        for name, value in counts.items():
+            if value < 1:
+                raise ValueError(f"{name} must be at least 1, got {value}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if not self.eval_mask_p or not all(0.0 <= p < 1.0 for p in self.eval_mask_p):
+            raise ValueError(f"eval_mask_p must be masking levels in [0, 1), got {self.eval_mask_p}")
         validation = range(self.validation_seed, self.validation_seed + max(self.eval_episodes, self.final_eval_episodes))
         test = range(self.test_seed, self.test_seed + self.final_eval_episodes)
         if min(self.validation_seed, self.test_seed) < 0 or (validation.start < test.stop and test.start < validation.stop):
@@ -95,30 +117,11 @@ def transition_batch(replay: LatentReplay, batch_size: int, generator: torch.Gen
     return replay.sample(batch_size, generator).transition()
 
 
-def _append_csv(path: Path, columns: list[str], rows: list[dict]) -> None:
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        writer = csv.DictWriter(f, columns)
-        if new:
-            writer.writeheader()
-        writer.writerows(rows)
-
-
-def _truncate_csv(path: Path, step: int) -> None:
-    """Drop rows written after the checkpoint a resumed run restarts from."""
-    if path.exists():
-        with path.open() as f:
-            rows = list(csv.DictReader(f))
-        columns = list(rows[0].keys()) if rows else []
-        path.unlink()
-        if rows:
-            _append_csv(path, columns, [r for r in rows if int(r["step"]) <= step])
-
-
 def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, generator: torch.Generator,
                     elapsed_s: float) -> None:
-    tmp = folder.with_name(folder.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
+    """Write the next `folder` beside it, then swap it in (`checkpointing.swap_in`): a crash at
+    any point leaves one complete checkpoint, which the next run finds (`checkpointing.recover`)."""
+    tmp = staging_folder(folder)
     pretrained = tmp / "pretrained_model"
     policy.save_pretrained(pretrained)
     preprocessor, postprocessor = make_murm_pre_post_processors(policy.config)
@@ -132,14 +135,22 @@ def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, gene
         "policy": policy.state_dict(),
         "elapsed_s": elapsed_s,  # wall time of all sittings so far, so a resumed run reports its whole time
     }
-    torch.save(state, tmp / "training_state.pt")
-    if folder.exists():  # swap, so that a crash leaves one complete checkpoint
-        old = folder.with_name(folder.name + ".old")
-        folder.rename(old)
-        tmp.rename(folder)
-        shutil.rmtree(old)
-    else:
-        tmp.rename(folder)
+    save_state(state, tmp / COMPLETE_MARK)
+    swap_in(folder)
+
+
+def _resume_state(out: Path, last: Path, device: torch.device) -> dict | None:
+    """The training state to resume from; None for a new run. A run that has logged steps
+    but has no readable checkpoint is an error, never a silent restart over its logs."""
+    if recover(last):
+        return load_state(last / COMPLETE_MARK, device)
+    logged = last_logged_step(out / "log.csv")
+    if logged is not None or last.exists():
+        raise CheckpointError(
+            f"{out} holds an earlier run (logged to step {logged}) but no checkpoint to resume from "
+            f"({last / COMPLETE_MARK} is missing); move {out} away or set another output_dir"
+        )
+    return None
 
 
 def train(config: TrainConfig) -> dict:
@@ -149,6 +160,9 @@ def train(config: TrainConfig) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     if (out / "final_eval.json").exists():  # a finished run is never redone
         return json.loads((out / "final_eval.json").read_text())
+    check_writable(Path(config.cache_dir))
+    last = out / "checkpoints" / "last"
+    state = _resume_state(out, last, device)  # before the expensive steps: a damaged run fails now
     policy_config: MurmConfig = config.policy
     torch.manual_seed(config.seed)
     generator = torch.Generator(device=device).manual_seed(config.seed)
@@ -160,21 +174,18 @@ def train(config: TrainConfig) -> dict:
     policy.fit_latent_statistics(replay.latents)
     optimizer = policy_config.get_optimizer_preset().build(policy.get_optim_params())
 
-    last = out / "checkpoints" / "last"
     step, earlier_s = 0, 0.0
-    if (last / "training_state.pt").exists():
-        state = torch.load(last / "training_state.pt", map_location=device, weights_only=False)
+    if state is not None:
         policy.load_state_dict(state["policy"])
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
         step, earlier_s = state["step"], state.get("elapsed_s", 0.0)
         for name in ("log.csv", "eval.csv"):
-            _truncate_csv(out / name, step)
+            set_aside_rows_after(out / name, step)
         print(f"resuming from step {step} ({last})")
-    else:
-        for name in ("log.csv", "eval.csv"):
-            (out / name).unlink(missing_ok=True)
+    else:  # a step-0 checkpoint: a run stopped before its first evaluation resumes too
+        save_checkpoint(last, policy, optimizer, step, generator, 0.0)
     draccus.dump(config, (out / "train_config.yaml").open("w"))
 
     def elapsed() -> float:
@@ -210,12 +221,12 @@ def train(config: TrainConfig) -> dict:
             if step % config.log_every == 0 or step == config.steps:
                 row = {k: float(np.mean([w[k] for w in window])) for k in LOG_COLUMNS[1:-1]}
                 row |= {"step": step, "steps_per_s": len(window) / (time.perf_counter() - window_start)}
-                _append_csv(out / "log.csv", LOG_COLUMNS, [row])
+                append_rows(out / "log.csv", LOG_COLUMNS, [row])
                 progress.set_postfix(critic=f"{row['critic_loss']:.3f}", q=f"{row['q']:.1f}")
                 window, window_start = [], time.perf_counter()
             if step % config.eval_every == 0 and step < config.steps:
                 rows = run_evaluation(step, seeds, "validation")
-                _append_csv(out / "eval.csv", EVAL_COLUMNS, rows)
+                append_rows(out / "eval.csv", EVAL_COLUMNS, rows)
                 progress.set_postfix(success=f"{rows[0]['success_rate']:.2f}")
                 save_checkpoint(last, policy, optimizer, step, generator, elapsed())
                 plot_learning_curve(out)
@@ -228,7 +239,7 @@ def train(config: TrainConfig) -> dict:
         final_validation = run_evaluation(step, validation_seeds, "validation", config.eval_authors_masking)
         test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
         final = run_evaluation(step, test_seeds, "test", config.eval_authors_masking)
-    _append_csv(out / "eval.csv", EVAL_COLUMNS, final_validation + final)
+    append_rows(out / "eval.csv", EVAL_COLUMNS, final_validation + final)
     plot_learning_curve(out)
     summary = {
         "method": policy_config.method,
@@ -248,4 +259,4 @@ def train(config: TrainConfig) -> dict:
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:
-    return draccus.parse(TrainConfig, config_path=str(path), args=overrides or [])
+    return draccus.parse(TrainConfig, config_path=str(path), args=overrides or [], exit_on_error=False)

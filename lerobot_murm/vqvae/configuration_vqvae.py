@@ -31,6 +31,16 @@ class VQVAEConfig:
     seed: int = 0
     dataset: dict = field(default_factory=dict)  # what it was trained on (repo id, root, fingerprint)
 
+    def __post_init__(self) -> None:
+        if self.steps < 1 or self.batch_size < 1:
+            raise ValueError(f"steps and batch_size must be at least 1, got {self.steps} and {self.batch_size}")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate must be positive, got {self.learning_rate}")
+        if not 0.0 <= self.holdout_fraction < 1.0:
+            raise ValueError(f"holdout_fraction must be in [0, 1), got {self.holdout_fraction}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+
     @property
     def grid_size(self) -> int:
         return self.image_size // 4  # two stride-2 convolutions

@@ -8,6 +8,8 @@ thread, a few chunks ahead of whoever consumes them.
 from __future__ import annotations
 
 import hashlib
+import json
+import re
 from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -16,6 +18,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pyarrow as pa
+from datasets.exceptions import DatasetGenerationError
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.collection.dataset import goal_image_key, image_key
@@ -30,14 +34,37 @@ class CameraFrames:
     frame_index: np.ndarray  # (N,) int
 
 
+REPO_ID = re.compile(r"[A-Za-z0-9][\w.-]*/[\w.-]+")
+
+
+class UnreadableDataset(RuntimeError):
+    """A dataset folder whose files cannot be read (torn by a hard stop, or not a LeRobotDataset)."""
+
+
 def dataset_location(value: str) -> tuple[str, Path | None]:
-    """`--dataset` values: a local dataset folder or a Hub repo id -> (repo_id, root)."""
+    """`--dataset` values: a local dataset folder or a Hub repo id -> (repo_id, root).
+
+    A value that is no folder here and cannot be a repo id (`user/name`) is a missing folder."""
     path = Path(value)
-    return (f"local/{path.name}", path) if path.exists() else (value, None)
+    if path.exists():
+        return f"local/{path.name}", path
+    if not REPO_ID.fullmatch(value):
+        raise FileNotFoundError(f"dataset folder {value} does not exist (and {value!r} is no Hub repo id user/name)")
+    return value, None
 
 
 def open_dataset(repo_id: str, root: Path | str | None) -> LeRobotDataset:
-    return LeRobotDataset(repo_id, root=root, video_backend="pyav")
+    """The dataset; a one-line `UnreadableDataset` naming the folder if its files cannot be read."""
+    if root is not None and not (Path(root) / "meta" / "info.json").is_file():
+        raise UnreadableDataset(f"{root} is not a LeRobotDataset (no meta/info.json)")
+    try:
+        return LeRobotDataset(repo_id, root=root, video_backend="pyav")
+    except (DatasetGenerationError, pa.ArrowException, json.JSONDecodeError) as error:
+        cause = error.__cause__ or error
+        raise UnreadableDataset(
+            f"cannot read the dataset at {root or repo_id}: {str(cause).splitlines()[0]} "
+            "(an interrupted `murm collect` is repaired by running it again with --resume)"
+        ) from error
 
 
 def dataset_cameras(dataset: LeRobotDataset) -> list[str]:

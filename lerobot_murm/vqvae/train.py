@@ -9,7 +9,6 @@ the paper's Figure 4).
 from __future__ import annotations
 
 import json
-import os
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -22,6 +21,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from lerobot_murm.checkpointing import CheckpointError, load_state, save_state  # noqa: E402
 from lerobot_murm.device import resolve_device  # noqa: E402
 from lerobot_murm.stopping import StopRequest, TrainingInterrupted  # noqa: E402
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig  # noqa: E402
@@ -107,8 +107,17 @@ def _save_state(path: Path, model: VQVAE, optimizer, schedule, rng: np.random.Ge
         "torch_rng": torch.get_rng_state(),
         "elapsed_s": elapsed_s,
     }
-    torch.save(state, path.with_suffix(".tmp"))
-    os.replace(path.with_suffix(".tmp"), path)
+    save_state(state, path)
+
+
+def _check_interrupted_has_state(out_dir: Path, state_path: Path) -> None:
+    """An interrupted encoder without its resume state is an error, not a silent restart."""
+    metrics = out_dir / "metrics.json"
+    if metrics.exists() and not state_path.exists() and json.loads(metrics.read_text()).get("interrupted"):
+        raise CheckpointError(
+            f"{out_dir} holds an interrupted encoder but its resume state {state_path.name} is missing; "
+            f"move {out_dir} away to train afresh"
+        )
 
 
 def train_vqvae(
@@ -141,8 +150,9 @@ def train_vqvae(
     out_dir.mkdir(parents=True, exist_ok=True)
     state_path = out_dir / STATE_FILE
     done, earlier_s = 0, 0.0
+    _check_interrupted_has_state(out_dir, state_path)
     if state_path.exists():
-        state = torch.load(state_path, map_location=device, weights_only=False)
+        state = load_state(state_path, device)
         if state["config"] == asdict(config):
             model.load_state_dict(state["model"])
             optimizer.load_state_dict(state["optimizer"])
@@ -195,6 +205,9 @@ def train_vqvae(
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     save_reconstructions(model.cpu(), holdout if len(holdout) else train_images, out_dir / "reconstructions.png")
     if interrupted:
-        raise TrainingInterrupted(f"stopped at step {done} of {config.steps}; run the same command again to resume")
+        raise TrainingInterrupted(
+            f"stopped at step {done} of {config.steps} (the encoder so far is saved in {out_dir}); "
+            "run the same command again to resume"
+        )
     state_path.unlink(missing_ok=True)
     return metrics

@@ -1,0 +1,245 @@
+"""Fault injection: kill -9 and a full disk during `murm collect`, a torn checkpoint swap."""
+
+import hashlib
+import json
+import os
+import random
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+import torch
+import yaml
+
+from lerobot_murm import checkpointing
+from lerobot_murm.checkpointing import CheckpointError, append_rows, load_state, recover, save_state
+from lerobot_murm.checkpointing import set_aside_rows_after, staging_folder, swap_in
+from lerobot_murm.collection import CollectConfig, collect
+
+MURM = Path(sys.executable).parent / "murm"
+RECIPE = ["--task", "place_in_box", "--cameras", "global,active", "--image-size", "16"]
+SUMMARY = "meta/murm_collection.json"
+
+
+def contents(root: Path) -> dict[str, object]:
+    """Every file of a dataset by content: parquet as its table (less the random fingerprint
+    `datasets` stamps on each write), JSON parsed (LeRobot orders the keys of stats.json
+    differently from one process to the next), anything else as bytes."""
+
+    def read(path: Path) -> object:
+        if path.suffix == ".parquet":
+            return pq.read_table(path).replace_schema_metadata(None)
+        if path.suffix == ".json":
+            data = json.loads(path.read_text())
+            if path.name == "murm_collection.json":  # it keeps the text of info.json and stats.json
+                saved = data["flushed"]["rewritten"]
+                data["flushed"]["rewritten"] = {k: v and json.loads(v) for k, v in saved.items()}
+            return data
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+
+    return {p.relative_to(root).as_posix(): read(p) for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def saved_episodes(root: Path) -> int:
+    path = root / SUMMARY
+    return json.loads(path.read_text())["episodes"] if path.exists() else 0
+
+
+def alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def descendants(pid: int) -> list[int]:
+    children = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout.split()
+    return [int(c) for c in children] + [d for c in children for d in descendants(int(c))]
+
+
+def collect_until_killed(root: Path, episodes: int, flush_every: int, rng: random.Random, resume: bool) -> None:
+    """Start `murm collect`, kill -9 it at a random moment after its next flush."""
+    args = [str(MURM), "collect", *RECIPE, "--root", str(root), "--episodes", str(episodes), "--workers", "2"]
+    args += ["--flush-every", str(flush_every)] + (["--resume"] if resume else [])
+    before = saved_episodes(root)
+    log = root.with_name("stderr.txt")
+    with log.open("w") as stderr:  # a file: an unread pipe could fill and block the run
+        process = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=stderr)
+    deadline = time.monotonic() + 900  # a liveness bound, generous for a crowded CI machine
+    try:
+        while saved_episodes(root) <= before:
+            assert process.poll() is None, f"the collection ended before it could be killed: {log.read_text()[-2000:]}"
+            assert time.monotonic() < deadline, f"no flush: {log.read_text()[-2000:]}"
+            time.sleep(0.05)
+        time.sleep(rng.uniform(0.0, 1.5))  # anywhere: mid-episode, mid-write, mid-flush
+        workers = descendants(process.pid)
+    except BaseException:  # a failed test leaves no collection running
+        process.kill()
+        raise
+    assert workers, "no worker processes"
+    process.kill()
+    process.wait()
+    deadline = time.monotonic() + 300  # a liveness bound: they leave within a second on an idle machine
+    while any(alive(pid) for pid in workers):
+        assert time.monotonic() < deadline, f"processes left behind: {[p for p in workers if alive(p)]}"
+        time.sleep(0.1)
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_points_then_resume_gives_the_unbroken_dataset(tmp_path):
+    episodes, flush_every = 6, 2
+    reference = tmp_path / "unbroken"
+    collect(CollectConfig(task="place_in_box", root=reference, episodes=episodes, workers=1,
+                          cameras=("global", "active"), image_size=16, flush_every=flush_every))
+
+    root, rng = tmp_path / "killed", random.Random(16)
+    collect_until_killed(root, episodes, flush_every, rng, resume=False)
+    collect_until_killed(root, episodes, flush_every, rng, resume=True)
+    assert saved_episodes(root) < episodes, "killed too late to test anything"
+    finished = subprocess.run(
+        [str(MURM), "collect", *RECIPE, "--root", str(root), "--episodes", str(episodes), "--workers", "2",
+         "--flush-every", str(flush_every), "--resume"], capture_output=True, text=True, timeout=300,
+    )
+    assert finished.returncode == 0, finished.stderr[-2000:]
+    assert contents(root) == contents(reference)  # the same files, metadata included
+
+
+@pytest.mark.slow
+def test_a_full_disk_mid_collection_loses_only_the_unflushed_episodes(tmp_path):
+    """The disk fills while a data file grows (simulated without privileges by a file-size
+    limit: writes past it fail with EFBIG, as they would with ENOSPC). The flushed episodes
+    stay; after making room, --resume ends with the unbroken dataset."""
+    episodes, flush_every = 6, 2
+    reference = tmp_path / "unbroken"
+    collect(CollectConfig(task="place_in_box", root=reference, episodes=episodes, workers=1,
+                          cameras=("global", "active"), image_size=16, flush_every=flush_every))
+    root = tmp_path / "ds"
+    command = [str(MURM), "collect", *RECIPE, "--root", str(root), "--workers", "1"]
+    first = subprocess.run(command + ["--episodes", "2", "--flush-every", "2"], capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr[-2000:]
+    two_episodes = max(p.stat().st_size for p in root.glob("data/*/*.parquet"))
+
+    def small_disk() -> None:
+        limit = int(1.5 * two_episodes)  # the next data file fails in its third episode
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a failed write, not a killed process
+
+    full = subprocess.run(command + ["--episodes", str(episodes), "--flush-every", "100", "--resume"],
+                          capture_output=True, text=True, timeout=300, preexec_fn=small_disk)
+    assert full.returncode == 1, full.stderr[-2000:]
+    assert full.stderr.splitlines()[-1].startswith(f"murm collect: cannot write to {root} (")
+    assert "2 of 6 episodes are safely saved; make room, then run again with --resume" in full.stderr
+    assert "Traceback" not in full.stderr.split("libtorchcodec loading traceback]")[-1]
+
+    resumed = subprocess.run(command + ["--episodes", str(episodes), "--flush-every", str(flush_every), "--resume"],
+                             capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert "removed" in resumed.stdout  # the torn files of the full disk
+    assert contents(root) == contents(reference)
+
+
+def stage_checkpoint(folder: Path, step: int) -> None:
+    """A complete next checkpoint beside `folder`, as `murm train` writes one before the swap."""
+    tmp = staging_folder(folder)
+    (tmp / "pretrained_model").mkdir(parents=True)
+    (tmp / "pretrained_model" / "model.safetensors").write_text(f"weights of step {step}")
+    save_state({"step": step}, tmp / "training_state.pt")
+
+
+def die_at_call(monkeypatch, owner, name: str, call: int) -> None:
+    """The `call`-th call of `owner.name` dies as kill -9 would: nothing after it runs."""
+    real, calls = getattr(owner, name), []
+
+    def dying(*args, **kwargs):
+        calls.append(args)
+        if len(calls) == call:
+            raise KeyboardInterrupt("killed")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(owner, name, dying)
+
+
+@pytest.mark.parametrize(
+    ("crash", "expected_step"),
+    [(("rename", 1), 1), (("rename", 2), 2), (("rmtree", 2), 2)],
+    ids=["before-first-rename", "between-renames", "before-cleanup"],
+)
+def test_a_torn_checkpoint_swap_recovers_a_complete_checkpoint(tmp_path, monkeypatch, crash, expected_step):
+    """Killed before the swap (last intact), between its renames (only last.old and a complete
+    last.tmp exist), or before removing last.old: the newest complete checkpoint is used, and
+    the next swap works (it used to fail with "Directory not empty")."""
+    last = tmp_path / "checkpoints" / "last"
+    stage_checkpoint(last, 1)
+    swap_in(last)
+    stage_checkpoint(last, 2)
+    what, call = crash
+    die_at_call(monkeypatch, Path if what == "rename" else checkpointing.shutil, what, call)
+    with pytest.raises(KeyboardInterrupt):
+        swap_in(last)
+    monkeypatch.undo()
+    assert recover(last)
+    assert load_state(last / "training_state.pt")["step"] == expected_step
+    assert (last / "pretrained_model" / "model.safetensors").read_text() == f"weights of step {expected_step}"
+    assert sorted(p.name for p in last.parent.iterdir()) == ["last"]
+    stage_checkpoint(last, 3)
+    swap_in(last)
+    assert load_state(last / "training_state.pt")["step"] == 3
+
+
+def test_a_half_written_checkpoint_is_never_used(tmp_path):
+    last = tmp_path / "last"
+    stage_checkpoint(last, 1)
+    swap_in(last)
+    torn = staging_folder(last)
+    (torn / "pretrained_model").mkdir(parents=True)  # killed before its training state was written
+    assert recover(last) and load_state(last / "training_state.pt")["step"] == 1
+    assert not torn.exists()
+
+
+def test_an_unreadable_training_state_is_a_clear_error(tmp_path):
+    path = tmp_path / "training_state.pt"
+    save_state({"step": 5, "weights": torch.zeros(1000)}, path)
+    path.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(CheckpointError, match=f"cannot read training state {path} .*damaged"):
+        load_state(path)
+    with pytest.raises(CheckpointError, match="missing"):
+        load_state(tmp_path / "none.pt")
+
+
+def test_a_resumed_run_sets_log_rows_aside_instead_of_deleting_them(tmp_path):
+    log = tmp_path / "log.csv"
+    append_rows(log, ["step", "loss"], [{"step": s, "loss": s / 10} for s in range(1, 6)])
+    assert set_aside_rows_after(log, 3) == 2
+    assert [r.split(",")[0] for r in log.read_text().splitlines()] == ["step", "1", "2", "3"]
+    superseded = tmp_path / "log.superseded.csv"
+    assert [r.split(",")[0] for r in superseded.read_text().splitlines()] == ["step", "4", "5"]
+
+
+@pytest.mark.slow
+def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_pipeline, tmp_path):
+    """Killed between the two renames of its last checkpoint swap, a run has only
+    `checkpoints/last.old`: the next run recovers it and resumes there."""
+    root, encoders = tiny_pipeline
+    policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
+    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
+              "cache_dir": str(tmp_path / "cache"), "steps": 4, "batch_size": 16, "log_every": 1, "eval_every": 100,
+              "eval_episodes": 1, "final_eval_episodes": 1, "eval_envs": 1, "policy": policy}
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(config))
+    command = [str(MURM), "train", "--config", str(path)]
+    first = subprocess.run(command, capture_output=True, text=True, timeout=600, env=os.environ | {"HF_HUB_OFFLINE": "1"})
+    assert first.returncode == 0, first.stderr[-3000:]
+    run = tmp_path / "run"
+    (run / "final_eval.json").unlink()
+    last = run / "checkpoints" / "last"
+    last.rename(last.with_name("last.old"))
+    again = subprocess.run(command + ["--steps=6"], capture_output=True, text=True, timeout=600,
+                           env=os.environ | {"HF_HUB_OFFLINE": "1"})
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "recovered the checkpoint" in again.stdout and "resuming from step 4" in again.stdout
+    assert [line.split(",")[0] for line in (run / "log.csv").read_text().splitlines()[1:]] == ["1", "2", "3", "4", "5", "6"]

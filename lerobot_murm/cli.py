@@ -107,6 +107,19 @@ def _encode(args: argparse.Namespace) -> None:
     print(f"wrote {cache_dir / 'epsilon.json'} and {cache_dir / 'latent_distances.png'}")
 
 
+def _check_encoders(args: argparse.Namespace) -> None:
+    from lerobot_murm.vqvae.frames import dataset_location
+    from lerobot_murm.vqvae.object_pixels import check_encoders, markdown_table
+
+    repo_id, root = dataset_location(args.dataset)
+    try:
+        results = check_encoders(repo_id, root, [Path(e) for e in args.encoders], args.episodes, device=args.device)
+    except ValueError as error:
+        raise SystemExit(f"murm check-encoders: {error}") from None
+    print(markdown_table(results))
+    print("wrote object_pixels.json and object_reconstructions.png beside each encoder")
+
+
 def _train(args: argparse.Namespace) -> None:
     from lerobot_murm.policy.train import load_train_config, train
     from lerobot_murm.stopping import TrainingInterrupted
@@ -210,6 +223,16 @@ def build_parser() -> argparse.ArgumentParser:
     enc.add_argument("--cache-dir", default="outputs/latent_cache")
     enc.add_argument("--device", default="cpu")
     enc.set_defaults(func=_encode)
+
+    check = commands.add_parser(
+        "check-encoders",
+        help="reconstruction error on the object's pixels of held-out frames (simulated again for the masks)",
+    )
+    check.add_argument("--dataset", required=True, help="the dataset folder the encoders were trained on")
+    check.add_argument("--encoders", nargs="+", required=True, help="VQ-VAE checkpoint folders, one per camera")
+    check.add_argument("--episodes", type=int, default=None, help="at most this many held-out episodes (default: all)")
+    check.add_argument("--device", default="cpu")
+    check.set_defaults(func=_check_encoders)
 
     tr = commands.add_parser(
         "train",

@@ -33,11 +33,17 @@ CHECKPOINT_EVERY = 250  # steps between resume states (about 30 s of training on
 STATE_FILE = "training_state.pt"
 
 
+def heldout_episodes(episode_index: np.ndarray, fraction: float, seed: int) -> np.ndarray:
+    """The whole episodes kept out of an encoder's training (none if there is only one)."""
+    episodes = np.unique(episode_index)
+    n_held = max(1, int(round(fraction * len(episodes)))) if len(episodes) > 1 else 0
+    return np.random.default_rng(seed).choice(episodes, size=n_held, replace=False)
+
+
 def split_episodes(frames: CameraFrames, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Training and held-out image arrays; held-out = all frames and goals of a few whole episodes."""
-    episodes = np.unique(frames.episode_index)
-    n_held = max(1, int(round(fraction * len(episodes)))) if len(episodes) > 1 else 0
-    held = np.random.default_rng(seed).choice(episodes, size=n_held, replace=False)
+    held = heldout_episodes(frames.episode_index, fraction, seed)
+    n_held = len(held)
     in_held = np.isin(frames.episode_index, held)
     goal_held = np.isin(np.arange(len(frames.goals)), held)
     train = np.concatenate([frames.images[~in_held], frames.goals[~goal_held]])

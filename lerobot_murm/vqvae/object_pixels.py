@@ -1,0 +1,202 @@
+"""Does a camera's encoder keep the object? Reconstruction error on the object's pixels.
+
+A 48x48 view where the object covers a few pixels can reconstruct at a high PSNR with the
+object gone (the table and the arm are most of the image), and a reward on latent
+distances is then blind to the object. So the held-out frames of each encoder are
+scored on the object's pixels alone, beside the whole image.
+
+Datasets store images, not masks, so the held-out episodes are simulated again: an
+episode is fully determined by the collection recipe and its index (`run_episode`), and
+a segmentation render (`MurmEnv.object_views`) gives the task's object mask of every
+frame and goal image. A re-rendered frame must equal the stored one pixel for pixel (PNG
+is lossless); frames that do not (a dataset made by other code) are left out and counted.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from lerobot_murm.collection.dataset import read_recipe  # noqa: E402
+from lerobot_murm.collection.episodes import run_episode  # noqa: E402
+from lerobot_murm.device import resolve_device  # noqa: E402
+from lerobot_murm.vqvae.frames import decode_pngs, open_dataset, read_camera_pngs  # noqa: E402
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE  # noqa: E402
+from lerobot_murm.vqvae.train import heldout_episodes  # noqa: E402
+
+OBJECT_PIXELS_FILE = "object_pixels.json"
+OBJECT_FIGURE_FILE = "object_reconstructions.png"
+MIN_VISIBLE_PIXELS = 4  # an object covering fewer pixels of a 48x48 view counts as not visible
+
+
+@dataclass
+class ObjectFrames:
+    """One camera's frames and goal images of some episodes, with the object's mask."""
+
+    camera: str
+    images: np.ndarray  # (N, H, W, 3) uint8, as re-rendered
+    masks: np.ndarray  # (N, H, W) bool, the task's object
+    episode_index: np.ndarray  # (N,)
+    is_goal: np.ndarray  # (N,) bool
+
+
+def resimulate_object_frames(root: Path, episodes: list[int], cameras: list[str]) -> dict[str, ObjectFrames]:
+    """Simulate the dataset's `episodes` again and render every frame and goal of `cameras`
+    with the object's mask."""
+    recipe = read_recipe(Path(root))
+    if recipe is None:
+        raise ValueError(f"{root} has no collection recipe (meta/murm_collection.json): only a dataset made by "
+                         "`murm collect` can be simulated again")
+    missing = [c for c in cameras if c not in recipe.cameras]
+    if missing:
+        raise ValueError(f"the dataset at {root} has no camera(s) {missing}; its cameras: {list(recipe.cameras)}")
+    recipe = replace(recipe, cameras=tuple(cameras))  # rendering does not change the physics
+    views: dict[str, list] = {c: [] for c in cameras}
+    rows: list[tuple[int, bool]] = []
+
+    def observe(env, t: int) -> None:
+        if t == 0:  # the goal images are rendered at reset, before the first frame
+            record(env.object_views(at_goal=True), True)
+        record(env.object_views(), False)
+
+    def record(object_views: dict, is_goal: bool) -> None:
+        rows.append((episode, is_goal))
+        for camera in cameras:
+            views[camera].append(object_views[camera])
+
+    for episode in tqdm(episodes, desc="simulate held-out episodes", unit="ep"):
+        run_episode(recipe, int(episode), observe)
+    episode_index = np.array([r[0] for r in rows])
+    is_goal = np.array([r[1] for r in rows])
+    return {
+        c: ObjectFrames(c, np.stack([v[0] for v in views[c]]), np.stack([v[1] for v in views[c]]), episode_index, is_goal)
+        for c in cameras
+    }
+
+
+def stored_images(dataset, camera: str, frames: ObjectFrames) -> np.ndarray:
+    """The dataset's own images for the rows of `frames` (episode frames in order, goal first)."""
+    pngs = read_camera_pngs(dataset, camera)
+    selected = []
+    for episode in dict.fromkeys(frames.episode_index.tolist()):
+        selected.append(pngs.goals[episode])
+        selected += [pngs.frames[i] for i in np.flatnonzero(pngs.episode_index == episode)]
+    return decode_pngs(selected)
+
+
+@torch.no_grad()
+def pixel_errors(model: VQVAE, images: np.ndarray, device: torch.device, batch: int = 1024) -> np.ndarray:
+    """(N, H, W) squared reconstruction error per pixel (mean over colour), images in [0, 1]."""
+    model.eval()
+    errors = []
+    for start in range(0, len(images), batch):
+        x = torch.from_numpy(images[start : start + batch]).to(device)
+        target = model.postprocess(model.preprocess(x))
+        reconstruction = model.postprocess(model(x)["reconstruction"])
+        errors.append((reconstruction - target).pow(2).mean(dim=1).cpu().numpy())
+    return np.concatenate(errors)
+
+
+def object_metrics(errors: np.ndarray, masks: np.ndarray) -> dict:
+    """Reconstruction error on the whole image, on the object's pixels and on the rest, and how
+    much of the object the camera sees."""
+    counts = masks.sum(axis=(1, 2))
+
+    def summary(selected: np.ndarray) -> dict:
+        mse = float(errors[selected].mean()) if selected.any() else float("nan")
+        return {"mse": mse, "psnr_db": float(10 * np.log10(1 / mse)) if selected.any() else float("nan")}
+
+    return {
+        "images": int(len(errors)),
+        "object_visible_fraction": float((counts >= MIN_VISIBLE_PIXELS).mean()),
+        "object_pixels_mean": float(counts.mean()),
+        "whole_image": summary(np.ones_like(masks)),
+        "object": summary(masks),
+        "background": summary(~masks),
+    }
+
+
+def check_encoders(repo_id: str, root: Path | None, encoder_dirs: list[Path], max_episodes: int | None = None,
+                   device: str = "cpu") -> list[dict]:
+    """For each encoder, its held-out episodes' object-pixel metrics, written with a figure
+    beside the checkpoint (`object_pixels.json`, `object_reconstructions.png`)."""
+    device = resolve_device(device)
+    dataset = open_dataset(repo_id, root)
+    models = {Path(d): VQVAE.load(Path(d), device=device) for d in encoder_dirs}
+    all_episodes = np.arange(dataset.meta.total_episodes)
+    held = {d: heldout_episodes(all_episodes, m.config.holdout_fraction, m.config.seed)[:max_episodes]
+            for d, m in models.items()}
+    episodes = sorted({int(e) for chosen in held.values() for e in chosen})
+    cameras = list(dict.fromkeys(m.config.camera for m in models.values()))
+    frames = resimulate_object_frames(Path(dataset.root), episodes, cameras)
+    results = []
+    for directory, model in models.items():
+        camera_frames = _rows(frames[model.config.camera], held[directory])
+        stored = stored_images(dataset, model.config.camera, camera_frames)
+        reproduced = (stored == camera_frames.images).all(axis=(1, 2, 3))
+        if not reproduced.any():
+            raise ValueError(f"no {model.config.camera} frame simulated again equals the dataset's: {dataset.root} "
+                             "was collected by other code (scene, cameras or expert changed since)")
+        errors = pixel_errors(model, stored[reproduced], device)
+        metrics = {
+            "camera": model.config.camera, "dataset": str(dataset.root), "task": read_recipe(Path(dataset.root)).task,
+            "episodes": [int(e) for e in held[directory]], "min_visible_pixels": MIN_VISIBLE_PIXELS,
+            "reproduced_fraction": float(reproduced.mean()),
+        } | object_metrics(errors, camera_frames.masks[reproduced])
+        (directory / OBJECT_PIXELS_FILE).write_text(json.dumps(metrics, indent=2) + "\n")
+        save_object_reconstructions(model.cpu(), stored[reproduced], camera_frames.masks[reproduced],
+                                    directory / OBJECT_FIGURE_FILE)
+        results.append(metrics)
+    return results
+
+
+def _rows(frames: ObjectFrames, episodes: np.ndarray) -> ObjectFrames:
+    keep = np.isin(frames.episode_index, episodes)
+    return ObjectFrames(frames.camera, frames.images[keep], frames.masks[keep], frames.episode_index[keep],
+                        frames.is_goal[keep])
+
+
+def save_object_reconstructions(model: VQVAE, images: np.ndarray, masks: np.ndarray, path: Path, count: int = 12) -> None:
+    """Held-out frames where the object is visible over their reconstructions, the object's
+    outline drawn on both."""
+    visible = np.flatnonzero(masks.sum(axis=(1, 2)) >= MIN_VISIBLE_PIXELS)
+    picks = (visible if len(visible) else np.arange(len(images)))
+    picks = picks[np.linspace(0, len(picks) - 1, min(count, len(picks))).astype(int)]
+    with torch.no_grad():
+        model.eval()
+        recon = model.postprocess(model(torch.from_numpy(images[picks]))["reconstruction"]).permute(0, 2, 3, 1).numpy()
+    fig, axes = plt.subplots(2, len(picks), figsize=(1.2 * len(picks), 2.7), squeeze=False)
+    for i, pick in enumerate(picks):
+        for row, image in ((0, images[pick]), (1, recon[i])):
+            ax = axes[row, i]
+            ax.imshow(image, interpolation="nearest")
+            if masks[pick].any():
+                ax.contour(masks[pick], levels=[0.5], colors="cyan", linewidths=0.7)
+            ax.set_xticks([]), ax.set_yticks([])
+    axes[0, 0].set_ylabel("original", fontsize=8)
+    axes[1, 0].set_ylabel("VQ-VAE", fontsize=8)
+    fig.suptitle(f"{model.config.camera} camera, held-out frames showing the object (cyan outline)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def markdown_table(results: list[dict]) -> str:
+    """One row per task and camera, as BENCHMARKS.md shows them."""
+    lines = ["| task | camera | images | object visible | object pixels (mean) | PSNR whole image | PSNR object | "
+             "PSNR background | reproduced |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        lines.append(f"| {r['task']} | {r['camera']} | {r['images']} | {r['object_visible_fraction']:.0%} | "
+                     f"{r['object_pixels_mean']:.1f} | {r['whole_image']['psnr_db']:.1f} dB | "
+                     f"{r['object']['psnr_db']:.1f} dB | {r['background']['psnr_db']:.1f} dB | "
+                     f"{r['reproduced_fraction']:.0%} |")
+    return "\n".join(lines) + "\n"

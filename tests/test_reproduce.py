@@ -48,6 +48,9 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert len(test) == 2 and not set(validation) & set(test)
     assert [r["episodes"] for r in result["final_validation"]] == [2, 2]
     assert 0.0 <= result["demonstration_success"] <= 1.0
+    checks = sorted((tmp_path / "work" / "vqvae").glob("*/*/object_pixels.json"))  # each encoder's object check
+    assert [p.parent.name for p in checks] == ["adjacent", "global"]
+    assert all(json.loads(p.read_text())["reproduced_fraction"] == 1.0 for p in checks)
 
     stamp = {p: p.stat().st_mtime_ns for p in (results / "runs").iterdir()}
     again = murm(args, tmp_path)

@@ -92,6 +92,9 @@ class ReproduceConfig:
     # which evaluation episodes the grid's tables show: "test" (the reported numbers) or
     # "validation" (grids that choose a setting: the test episodes are never looked at)
     report_split: str = "test"
+    # held-out episodes per task simulated again to score each new encoder on the object's
+    # pixels (object_pixels.json beside it, as `murm check-encoders`); 0: no check
+    object_check_episodes: int = 20
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]

@@ -49,6 +49,7 @@ from lerobot_murm.vqvae.latent_distance import (
     read_statistics,
     save_beside_encoder,
 )
+from lerobot_murm.vqvae.object_pixels import OBJECT_PIXELS_FILE, check_encoders
 from lerobot_murm.vqvae.train import train_vqvae
 
 
@@ -91,7 +92,8 @@ def encoder_dir(config: ReproduceConfig, root: Path) -> Path:
 
 
 def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
-    """A camera's VQ-VAE in `<encoder_dir>/<camera>`, with its epsilon statistics beside it."""
+    """A camera's VQ-VAE in `<encoder_dir>/<camera>`, with its epsilon statistics and its object
+    check (`murm check-encoders`) beside it."""
     device = str(resolve_device(config.device))
     out = encoder_dir(config, root) / camera
     repo_id = f"local/{root.name}"
@@ -99,9 +101,15 @@ def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
     if not encoder_is_finished(out, steps):
         vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
         train_vqvae(repo_id, root, camera, out, vq_config, device=device)
+        (out / OBJECT_PIXELS_FILE).unlink(missing_ok=True)  # it was about the encoder trained before
     if not (out / "latent_distance.json").exists() or QUANTILE_KEY not in read_statistics(out):
         cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)
         save_beside_encoder(distance_statistics(cache, episode_successes(repo_id, root)), out)
+    if not (out / OBJECT_PIXELS_FILE).exists() and config.object_check_episodes:
+        try:
+            check_encoders(repo_id, root, [out], config.object_check_episodes, device=device)
+        except ValueError as error:  # a diagnostic: the grid goes on without it
+            print(f"object check of {camera} skipped: {error}")
     return out
 
 

@@ -18,20 +18,16 @@ import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from tqdm import tqdm
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
-
-from lerobot_murm.collection.dataset import read_recipe  # noqa: E402
-from lerobot_murm.collection.episodes import run_episode  # noqa: E402
-from lerobot_murm.device import resolve_device  # noqa: E402
-from lerobot_murm.vqvae.frames import decode_pngs, open_dataset, read_camera_pngs  # noqa: E402
-from lerobot_murm.vqvae.modeling_vqvae import VQVAE  # noqa: E402
-from lerobot_murm.vqvae.train import heldout_episodes  # noqa: E402
+from lerobot_murm.collection.dataset import read_recipe
+from lerobot_murm.collection.episodes import run_episode
+from lerobot_murm.device import resolve_device
+from lerobot_murm.vqvae.frames import decode_pngs, open_dataset, read_camera_pngs
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE
+from lerobot_murm.vqvae.train import heldout_episodes, save_reconstructions
 
 OBJECT_PIXELS_FILE = "object_pixels.json"
 OBJECT_FIGURE_FILE = "object_reconstructions.png"
@@ -165,29 +161,14 @@ def _rows(frames: ObjectFrames, episodes: np.ndarray) -> ObjectFrames:
                         frames.is_goal[keep])
 
 
-def save_object_reconstructions(model: VQVAE, images: np.ndarray, masks: np.ndarray, path: Path, count: int = 12) -> None:
-    """Held-out frames where the object is visible over their reconstructions, the object's
-    outline drawn on both."""
-    visible = np.flatnonzero(masks.sum(axis=(1, 2)) >= MIN_VISIBLE_PIXELS)
-    picks = (visible if len(visible) else np.arange(len(images)))
-    picks = picks[np.linspace(0, len(picks) - 1, min(count, len(picks))).astype(int)]
-    with torch.no_grad():
-        model.eval()
-        recon = model.postprocess(model(torch.from_numpy(images[picks]))["reconstruction"]).permute(0, 2, 3, 1).numpy()
-    fig, axes = plt.subplots(2, len(picks), figsize=(1.2 * len(picks), 2.7), squeeze=False)
-    for i, pick in enumerate(picks):
-        for row, image in ((0, images[pick]), (1, recon[i])):
-            ax = axes[row, i]
-            ax.imshow(image, interpolation="nearest")
-            if masks[pick].any():
-                ax.contour(masks[pick], levels=[0.5], colors="cyan", linewidths=0.7)
-            ax.set_xticks([]), ax.set_yticks([])
-    axes[0, 0].set_ylabel("original", fontsize=8)
-    axes[1, 0].set_ylabel("VQ-VAE", fontsize=8)
-    fig.suptitle(f"{model.config.camera} camera, held-out frames showing the object (cyan outline)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def save_object_reconstructions(model: VQVAE, images: np.ndarray, masks: np.ndarray, path: Path) -> None:
+    """Held-out frames where the object is visible (all frames if it never is) over their
+    reconstructions, the object's outline drawn on both."""
+    visible = masks.sum(axis=(1, 2)) >= MIN_VISIBLE_PIXELS
+    if visible.any():
+        images, masks = images[visible], masks[visible]
+    title = "held-out frames, object outlined" if visible.any() else "held-out frames: the object is never visible"
+    save_reconstructions(model, images, path, masks=masks, title=title)
 
 
 def markdown_table(results: list[dict]) -> str:

@@ -36,13 +36,12 @@ MIN_VISIBLE_PIXELS = 4  # an object covering fewer pixels of a 48x48 view counts
 
 @dataclass
 class ObjectFrames:
-    """One camera's frames and goal images of some episodes, with the object's mask."""
+    """One camera's goal images and frames of some episodes, with the object's mask."""
 
     camera: str
     images: np.ndarray  # (N, H, W, 3) uint8, as re-rendered
     masks: np.ndarray  # (N, H, W) bool, the task's object
-    episode_index: np.ndarray  # (N,)
-    is_goal: np.ndarray  # (N,) bool
+    episode_index: np.ndarray  # (N,): per episode its goal image, then its frames in order
 
 
 def resimulate_object_frames(root: Path, episodes: list[int], cameras: list[str]) -> dict[str, ObjectFrames]:
@@ -57,24 +56,22 @@ def resimulate_object_frames(root: Path, episodes: list[int], cameras: list[str]
         raise ValueError(f"the dataset at {root} has no camera(s) {missing}; its cameras: {list(recipe.cameras)}")
     recipe = replace(recipe, cameras=tuple(cameras))  # rendering does not change the physics
     views: dict[str, list] = {c: [] for c in cameras}
-    rows: list[tuple[int, bool]] = []
+    episode_index: list[int] = []
 
     def observe(env, t: int) -> None:
         if t == 0:  # the goal images are rendered at reset, before the first frame
-            record(env.object_views(at_goal=True), True)
-        record(env.object_views(), False)
+            record(env.object_views(at_goal=True))
+        record(env.object_views())
 
-    def record(object_views: dict, is_goal: bool) -> None:
-        rows.append((episode, is_goal))
+    def record(object_views: dict) -> None:
         for camera in cameras:
             views[camera].append(object_views[camera])
 
     for episode in tqdm(episodes, desc="simulate held-out episodes", unit="ep"):
         run_episode(recipe, int(episode), observe)
-    episode_index = np.array([r[0] for r in rows])
-    is_goal = np.array([r[1] for r in rows])
+        episode_index += [int(episode)] * (len(views[cameras[0]]) - len(episode_index))
     return {
-        c: ObjectFrames(c, np.stack([v[0] for v in views[c]]), np.stack([v[1] for v in views[c]]), episode_index, is_goal)
+        c: ObjectFrames(c, np.stack([v[0] for v in views[c]]), np.stack([v[1] for v in views[c]]), np.array(episode_index))
         for c in cameras
     }
 
@@ -157,8 +154,7 @@ def check_encoders(repo_id: str, root: Path | None, encoder_dirs: list[Path], ma
 
 def _rows(frames: ObjectFrames, episodes: np.ndarray) -> ObjectFrames:
     keep = np.isin(frames.episode_index, episodes)
-    return ObjectFrames(frames.camera, frames.images[keep], frames.masks[keep], frames.episode_index[keep],
-                        frames.is_goal[keep])
+    return ObjectFrames(frames.camera, frames.images[keep], frames.masks[keep], frames.episode_index[keep])
 
 
 def save_object_reconstructions(model: VQVAE, images: np.ndarray, masks: np.ndarray, path: Path) -> None:

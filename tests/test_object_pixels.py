@@ -12,6 +12,7 @@ import pytest
 
 from lerobot_murm.env import goal_key
 from lerobot_murm.env.objects import OBJECT_COLOURS
+from lerobot_murm.vqvae import object_pixels
 from lerobot_murm.vqvae.object_pixels import MIN_VISIBLE_PIXELS, object_metrics
 
 MURM = os.path.join(os.path.dirname(sys.executable), "murm")
@@ -80,5 +81,5 @@ def test_check_encoders_refuses_a_dataset_it_cannot_simulate_again(tiny_pipeline
     assert result.returncode == 1
     assert result.stderr.strip().splitlines()[-1].startswith("murm check-encoders: no global frame simulated again")
     summary.unlink()
-    result = check_encoders(changed, [encoder_dir / "global"], tmp_path)
-    assert "has no collection recipe" in result.stderr.strip().splitlines()[-1]
+    with pytest.raises(ValueError, match="has no collection recipe"):
+        object_pixels.check_encoders("local/place_in_box", changed, [encoder_dir / "global"])

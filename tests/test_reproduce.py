@@ -307,3 +307,16 @@ def test_the_table2_report_says_on_which_scale_each_epsilon_is(tmp_path):
     assert "| place_in_box | single-global-paper-eps0.1 | 0.23 | 0.1 | 0.004 |" in report
     assert "| place_in_box | single-global-paper-eps2 | 4.6 | 2 | 0.31 |" in report
     assert "The paper's epsilons are on its own encoders' scale" in report
+
+
+def test_an_encoder_whose_frames_all_encode_alike_has_no_paper_scale(tmp_path):
+    from lerobot_murm.experiments.configuration_reproduce import CellSpec
+    from lerobot_murm.experiments.reproduce import cell_epsilon, epsilon_scales
+    from lerobot_murm.vqvae.latent_distance import QUANTILE_KEY
+
+    (tmp_path / "global").mkdir()
+    stats = {"camera": "global", "suggested_epsilon": 0.0, QUANTILE_KEY: [0.0] * 101}
+    (tmp_path / "global" / "latent_distance.json").write_text(json.dumps(stats))
+    assert epsilon_scales([0.0], ["global"], tmp_path)["epsilon_paper_scale"] == [None]
+    with pytest.raises(ValueError, match="no scale to map the paper's epsilon to"):
+        cell_epsilon(CellSpec(method="single", cameras=["global"], paper_epsilon=[1.0]), tmp_path)

@@ -107,7 +107,7 @@ def epsilon_table(results: Path) -> str:
 
 
 def _values(values: list[float] | None) -> str:
-    return "-" if values is None else ", ".join(f"{v:.3g}" for v in values)
+    return "-" if values is None else ", ".join("-" if v is None else f"{v:.3g}" for v in values)
 
 
 def run_list(results: Path) -> str:

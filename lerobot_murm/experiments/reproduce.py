@@ -138,9 +138,13 @@ def epsilon_scales(epsilon: list[float], cameras: list[str], encoders: Path) -> 
     that close to their goal: what REPORT.md labels a run's threshold by."""
     pairs = [(e, read_statistics(encoders / c)) for e, c in zip(epsilon, cameras, strict=True)]
     return {
-        "epsilon_paper_scale": [round(epsilon_on_paper_scale(e, stats), 4) for e, stats in pairs],
+        "epsilon_paper_scale": [_rounded(epsilon_on_paper_scale(e, stats)) for e, stats in pairs],
         "epsilon_quantile": [round(quantile_of_epsilon(e, stats), 4) for e, stats in pairs],
     }
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 4)
 
 
 def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, root: Path, encoders: Path) -> TrainConfig:

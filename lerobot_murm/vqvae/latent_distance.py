@@ -34,6 +34,8 @@ PAPER_CHOSEN_EPSILON = 2.0  # paper 5.1: the best success in Table 2; the author
 
 def goal_distances(cache: LatentCache, rows: np.ndarray) -> np.ndarray:
     """Squared latent distance between frames `rows` and their episode's goal image."""
+    if not len(rows):  # e.g. no successful episode in the dataset
+        return np.zeros(0, np.float32)
     diff = cache.latents(rows) - cache.goal_latents(cache.episode_index[rows])
     return np.square(diff).sum(axis=1)
 
@@ -74,12 +76,17 @@ def paper_epsilon_on_our_scale(paper_epsilon: float, stats: dict) -> float:
     """
     if paper_epsilon <= 0:
         raise ValueError(f"a paper-scale epsilon must be positive, got {paper_epsilon}")
+    if stats["suggested_epsilon"] <= 0:
+        raise ValueError(f"the {stats['camera']} encoder's suggested epsilon is 0 (its frames encode alike): "
+                         "there is no scale to map the paper's epsilon to")
     return paper_epsilon / PAPER_CHOSEN_EPSILON * float(stats["suggested_epsilon"])
 
 
-def epsilon_on_paper_scale(epsilon: float, stats: dict) -> float:
-    """The inverse of `paper_epsilon_on_our_scale`: where our epsilon sits on the paper's scale."""
-    return epsilon / float(stats["suggested_epsilon"]) * PAPER_CHOSEN_EPSILON
+def epsilon_on_paper_scale(epsilon: float, stats: dict) -> float | None:
+    """The inverse of `paper_epsilon_on_our_scale`: where our epsilon sits on the paper's scale
+    (None when the suggestion is 0 and there is no scale)."""
+    suggested = float(stats["suggested_epsilon"])
+    return epsilon / suggested * PAPER_CHOSEN_EPSILON if suggested > 0 else None
 
 
 def epsilon_at_quantile(quantile: float, stats: dict) -> float:

@@ -130,6 +130,19 @@ def _write_latents(args: argparse.Namespace, repo_id: str, root: Path | None, ca
         _push(argparse.Namespace(root=out, repo_id=latent_repo_id, private=args.private))
 
 
+def _check_encoders(args: argparse.Namespace) -> None:
+    from lerobot_murm.vqvae.frames import dataset_location
+    from lerobot_murm.vqvae.object_pixels import check_encoders, markdown_table
+
+    repo_id, root = dataset_location(args.dataset)
+    try:
+        results = check_encoders(repo_id, root, [Path(e) for e in args.encoders], args.episodes, device=args.device)
+    except ValueError as error:
+        raise SystemExit(f"murm check-encoders: {error}") from None
+    print(markdown_table(results))
+    print("wrote object_pixels.json and object_reconstructions.png beside each encoder")
+
+
 def _train(args: argparse.Namespace) -> None:
     from lerobot_murm.policy.train import load_train_config, train
 
@@ -242,6 +255,16 @@ def build_parser() -> argparse.ArgumentParser:
     enc.add_argument("--push-to-hub", action="store_true", help="with --to-dataset: push it to --repo-id")
     enc.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
     enc.set_defaults(func=_encode)
+
+    check = commands.add_parser(
+        "check-encoders",
+        help="reconstruction error on the object's pixels of held-out frames (simulated again for the masks)",
+    )
+    check.add_argument("--dataset", required=True, help="the dataset folder the encoders were trained on")
+    check.add_argument("--encoders", nargs="+", required=True, help="VQ-VAE checkpoint folders, one per camera")
+    check.add_argument("--episodes", type=int, default=None, help="at most this many held-out episodes (default: all)")
+    check.add_argument("--device", default="cpu")
+    check.set_defaults(func=_check_encoders)
 
     tr = commands.add_parser(
         "train",

@@ -4,6 +4,7 @@ that every shipped config parses."""
 import csv
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -51,6 +52,9 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert len(test) == 2 and not set(validation) & set(test)
     assert [r["episodes"] for r in result["final_validation"]] == [2, 2]
     assert 0.0 <= result["demonstration_success"] <= 1.0
+    checks = sorted((tmp_path / "work" / "vqvae").glob("*/*/object_pixels.json"))  # each encoder's object check
+    assert [p.parent.name for p in checks] == ["adjacent", "global"]
+    assert all(json.loads(p.read_text())["reproduced_fraction"] == 1.0 for p in checks)
 
     stamp = {p: p.stat().st_mtime_ns for p in (results / "runs").iterdir()}
     again = murm(args, tmp_path)
@@ -247,3 +251,76 @@ def test_a_choosing_grid_reports_validation_episodes_and_never_the_test_ones():
     with pytest.raises(Exception) as error:  # draccus wraps the config's ValueError
         load_reproduce_config(REPO / "configs/reproduce/table4.yaml", ["--report_split=train"])
     assert "report_split must be 'test' or 'validation'" in str(error.value.__cause__ or error.value)
+
+
+def test_table2_runs_the_papers_epsilons_mapped_to_our_encoders_scale(tiny_pipeline, tmp_path):
+    from lerobot_murm.experiments.reproduce import cell_epsilon, epsilon_scales, train_config
+    from lerobot_murm.vqvae.latent_distance import read_statistics
+
+    root, encoders = tiny_pipeline
+    stats = read_statistics(encoders / "global")
+    suggested, random = stats["suggested_epsilon"], stats["random_frames"]
+    table2 = load_reproduce_config(REPO / "configs/reproduce/table2.yaml", [f"--work_dir={tmp_path}"])
+    ours = {cell.label: cell_epsilon(cell, encoders) for cell in table2.cells}
+    assert ours["single-global-paper-eps0.1"] == pytest.approx([0.05 * suggested])
+    assert ours["single-global-paper-eps5"] == pytest.approx([2.5 * suggested])
+    assert ours["single-global-paper-eps2"] is None  # the suggestion itself: Table 4's baseline, reused
+    config = train_config(table2, "place_in_box", table2.cells[3], 0, root, encoders)
+    assert config.policy.epsilon == pytest.approx([1.5 * suggested])
+
+    scales = epsilon_scales([suggested, 1.5 * suggested], ["global", "adjacent"], encoders)
+    assert scales["epsilon_paper_scale"][0] == pytest.approx(2.0, abs=1e-3)
+    assert 0 <= scales["epsilon_quantile"][0] <= 1 and scales["epsilon_quantile"][1] >= 0
+
+    median = load_reproduce_config(REPO / "configs/reproduce/table2.yaml", [
+        "--cells=[{method: single, cameras: [global], epsilon_quantile: [0.5], label: median}]"]).cells[0]
+    assert cell_epsilon(median, encoders) == pytest.approx([random["p50"]], rel=1e-6)
+    assert epsilon_scales(cell_epsilon(median, encoders), ["global"], encoders)["epsilon_quantile"] == [0.5]
+
+
+@pytest.mark.parametrize("fields, error", [
+    ({"epsilon": [1.0], "paper_epsilon": [2.0]}, "set one of epsilon, paper_epsilon, epsilon_quantile"),
+    ({"paper_epsilon": [2.0, 3.0]}, "2 paper_epsilon values for 1 cameras"),
+    ({"epsilon_quantile": [1.5]}, "epsilon_quantile values must be in (0, 1)"),
+    ({"paper_epsilon": [0.0]}, "epsilon values must be positive"),
+])
+def test_a_cell_with_a_bad_epsilon_is_refused_with_one_line(fields, error):
+    from lerobot_murm.experiments.configuration_reproduce import CellSpec
+
+    with pytest.raises(ValueError, match=re.escape(f"cell single-global: {error}")):
+        CellSpec(method="single", cameras=["global"], **fields)
+
+
+def test_the_table2_report_says_on_which_scale_each_epsilon_is(tmp_path):
+    import draccus
+
+    from lerobot_murm.experiments.report import write_report
+
+    grid = tmp_path / "results" / "table2"
+    (grid / "runs").mkdir(parents=True)
+    draccus.dump(load_reproduce_config(REPO / "configs/reproduce/table2.yaml", ["--seeds=[0]"]), (grid / "config.yaml").open("w"))
+    for cell, epsilon, paper, quantile in (("single-global-paper-eps0.1", 0.23, 0.1, 0.004),
+                                          ("single-global-paper-eps2", 4.6, 2.0, 0.31)):
+        run = {"task": "place_in_box", "cell": cell, "method": "single", "cameras": ["global"], "seed": 0,
+               "steps": 20000, "final": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}], "wall_s": 360.0,
+               "train_steps_per_s": 90.0, "hardware": "cpu", "curve": [[20000, 0.0, 0.5]], "epsilon": [epsilon],
+               "epsilon_paper_scale": [paper], "epsilon_quantile": [quantile]}
+        (grid / "runs" / f"place_in_box__{cell}__seed0.json").write_text(json.dumps(run))
+    report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
+    assert "| single-global-paper-eps0.1 | 0% | 50.0 ± 0.0 (n=1) | 29.0 |" in report
+    assert "| place_in_box | single-global-paper-eps0.1 | 0.23 | 0.1 | 0.004 |" in report
+    assert "| place_in_box | single-global-paper-eps2 | 4.6 | 2 | 0.31 |" in report
+    assert "The paper's epsilons are on its own encoders' scale" in report
+
+
+def test_an_encoder_whose_frames_all_encode_alike_has_no_paper_scale(tmp_path):
+    from lerobot_murm.experiments.configuration_reproduce import CellSpec
+    from lerobot_murm.experiments.reproduce import cell_epsilon, epsilon_scales
+    from lerobot_murm.vqvae.latent_distance import QUANTILE_KEY
+
+    (tmp_path / "global").mkdir()
+    stats = {"camera": "global", "suggested_epsilon": 0.0, QUANTILE_KEY: [0.0] * 101}
+    (tmp_path / "global" / "latent_distance.json").write_text(json.dumps(stats))
+    assert epsilon_scales([0.0], ["global"], tmp_path)["epsilon_paper_scale"] == [None]
+    with pytest.raises(ValueError, match="no scale to map the paper's epsilon to"):
+        cell_epsilon(CellSpec(method="single", cameras=["global"], paper_epsilon=[1.0]), tmp_path)

@@ -6,6 +6,7 @@ dataset is the same whatever the number of workers.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,7 +65,9 @@ def _env_for(recipe: EpisodeRecipe) -> MurmEnv:
     return _ENV_CACHE[key]
 
 
-def run_episode(recipe: EpisodeRecipe, index: int) -> Episode:
+def run_episode(recipe: EpisodeRecipe, index: int, observe: Callable[[MurmEnv, int], None] | None = None) -> Episode:
+    """`observe(env, t)`, if given, sees the simulator in the state of each recorded frame t
+    (the encoders' object check renders masks of exactly the dataset's frames with it)."""
     env_seed, rng = recipe.episode_seeds(index)
     noisy = bool(rng.random() < recipe.noisy_fraction)
     env = _env_for(recipe)
@@ -80,6 +83,8 @@ def run_episode(recipe: EpisodeRecipe, index: int) -> Episode:
         for camera in recipe.cameras:
             images[camera][t] = obs["pixels"][camera]
         state[t], environment_state[t] = obs["agent_pos"], obs["environment_state"]
+        if observe is not None:
+            observe(env, t)
         act = expert.act(obs)
         if noisy:
             act = noisy_action(act, recipe.noise_k, rng, recipe.noise_std)

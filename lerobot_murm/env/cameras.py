@@ -103,20 +103,39 @@ class CameraRig:
         return {name: self.render(name, ee_position) for name in self.names}
 
     def render(self, name: str, ee_position: np.ndarray, size: int | None = None) -> np.ndarray:
-        camera = CAMERAS[name]
-        view = self._fixed_views.get(name) or camera.view_matrix(ee_position)
-        return render_view(self._client, view, self._projection, size or self.image_size)
+        return render_view(self._client, self._view(name, ee_position), self._projection, size or self.image_size)
+
+    def render_with_mask(self, name: str, ee_position: np.ndarray, body: int) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's image and an HxW bool mask of the pixels where `body` is visible."""
+        rgb, segmentation = render_segmented_view(self._client, self._view(name, ee_position), self._projection,
+                                                  self.image_size)
+        return rgb, segmentation == body
+
+    def _view(self, name: str, ee_position: np.ndarray) -> tuple[float, ...]:
+        return self._fixed_views.get(name) or CAMERAS[name].view_matrix(ee_position)
 
 
 def render_view(client, view_matrix, projection, size: int) -> np.ndarray:
     """One TinyRenderer image as an HxWx3 uint8 array (no segmentation mask: it costs time)."""
-    _, _, rgba, _, _ = client.getCameraImage(
+    return _tiny_render(client, view_matrix, projection, size, pybullet.ER_NO_SEGMENTATION_MASK)[0]
+
+
+def render_segmented_view(client, view_matrix, projection, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image of `render_view` and its HxW segmentation buffer (the body id seen at each
+    pixel, -1 for none), for checks; observations use `render_view` and skip the mask."""
+    return _tiny_render(client, view_matrix, projection, size, 0)
+
+
+def _tiny_render(client, view_matrix, projection, size: int, flags: int) -> tuple[np.ndarray, np.ndarray | None]:
+    _, _, rgba, _, segmentation = client.getCameraImage(
         width=size,
         height=size,
         viewMatrix=view_matrix,
         projectionMatrix=projection,
         renderer=pybullet.ER_TINY_RENDERER,
-        flags=pybullet.ER_NO_SEGMENTATION_MASK,
+        flags=flags,
         shadow=0,
     )
-    return np.asarray(rgba, dtype=np.uint8).reshape(size, size, 4)[:, :, :3].copy()
+    rgb = np.asarray(rgba, dtype=np.uint8).reshape(size, size, 4)[:, :, :3].copy()
+    masked = flags & pybullet.ER_NO_SEGMENTATION_MASK
+    return rgb, None if masked else np.asarray(segmentation, dtype=np.int64).reshape(size, size)

@@ -9,6 +9,7 @@ recorded in the dataset, never by the learned policy).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
@@ -174,16 +175,32 @@ class MurmEnv(gym.Env):
         return self._robot.ee_position() if self._robot is not None else HOME_EE_POSITION
 
     def _render_goal(self) -> dict[str, np.ndarray]:
-        """Move object and hand to the goal, render every camera, restore the scene exactly."""
+        images = self._at_goal(self._rig.render_all)
+        return {goal_key(name): image for name, image in images.items()}
+
+    def _at_goal(self, render: Callable[[np.ndarray], dict]) -> dict:
+        """Move object and hand to the goal, call `render(ee_position)`, restore the scene exactly."""
         client, task = self._client, self._task
         snapshot = client.saveState()
         orientation = client.getBasePositionAndOrientation(task.object_body)[1]
         client.resetBasePositionAndOrientation(task.object_body, task.goal_position.tolist(), orientation)
         self._robot.teleport(task.goal_ee_position(), task.goal_finger_width())
-        images = self._rig.render_all(self._robot.ee_position())
+        images = render(self._robot.ee_position())
         client.restoreState(snapshot)
         client.removeState(snapshot)
-        return {goal_key(name): image for name, image in images.items()}
+        return images
+
+    def object_views(self, at_goal: bool = False) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Per camera, the image of the current scene (or of the goal scene) and the mask of the
+        task's object in it, from the segmentation buffer. A render of its own, for checking
+        what an encoder keeps of the object; observations never pay for it."""
+        if self._robot is None:
+            raise RuntimeError("call reset() before object_views()")
+
+        def render(ee_position: np.ndarray) -> dict:
+            return {name: self._rig.render_with_mask(name, ee_position, self._task.object_body) for name in self.cameras}
+
+        return self._at_goal(render) if at_goal else render(self._robot.ee_position())
 
     def _observation(self) -> dict[str, Any]:
         ee = self._robot.ee_position()

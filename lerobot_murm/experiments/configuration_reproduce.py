@@ -1,7 +1,8 @@
 """The experiment grid `murm reproduce` runs: tasks x cells x seeds, each cell a training recipe.
 
 A cell names a method and its cameras and may change the demonstrations (Table 7) or the
-reward threshold (Table 2). Every stage has defaults at the paper's scale; the YAML files
+reward threshold (Table 2): on our encoders' scale (`epsilon`), on the paper's
+(`paper_epsilon`, mapped) or as a quantile of frame-to-goal distances (`epsilon_quantile`). Every stage has defaults at the paper's scale; the YAML files
 in `configs/reproduce/` say what each table varies.
 """
 
@@ -51,7 +52,11 @@ class CellSpec:
     label: str = ""  # default: method and cameras
     eval_mask_p: list[float] = field(default_factory=lambda: [0.0])
     eval_authors_masking: bool = False  # also the authors' code's masking protocol (an extra row)
-    epsilon: list[float] | None = None  # default: the suggestion of `murm encode`
+    epsilon: list[float] | None = None  # per camera, on our encoders' scale; default: `murm encode`'s suggestion
+    # per camera, on the paper's scale (Table 2), mapped to ours by the ratio to the paper's
+    # chosen 2.0 (latent_distance.paper_epsilon_on_our_scale)
+    paper_epsilon: list[float] | None = None
+    epsilon_quantile: list[float] | None = None  # per camera, a share (0-1) of random frames' goal distances
     episodes: int | None = None  # demonstrations (Table 7); default: the collection's
     noisy_fraction: float | None = None  # share of noisy demonstrations (Table 7)
     policy: dict = field(default_factory=dict)  # any other MurmConfig field
@@ -59,6 +64,17 @@ class CellSpec:
     def __post_init__(self) -> None:
         if not self.label:
             self.label = f"{self.method}-{'+'.join(self.cameras)}"
+        given = {k: v for k, v in (("epsilon", self.epsilon), ("paper_epsilon", self.paper_epsilon),
+                                   ("epsilon_quantile", self.epsilon_quantile)) if v is not None}
+        if len(given) > 1:
+            raise ValueError(f"cell {self.label}: set one of epsilon, paper_epsilon, epsilon_quantile, not {list(given)}")
+        for key, values in given.items():
+            if len(values) != len(self.cameras):
+                raise ValueError(f"cell {self.label}: {len(values)} {key} values for {len(self.cameras)} cameras")
+        if any(v <= 0 for v in (self.epsilon or []) + (self.paper_epsilon or [])):
+            raise ValueError(f"cell {self.label}: epsilon values must be positive")
+        if any(not 0 < q < 1 for q in self.epsilon_quantile or []):
+            raise ValueError(f"cell {self.label}: epsilon_quantile values must be in (0, 1)")
 
 
 @dataclass
@@ -76,6 +92,9 @@ class ReproduceConfig:
     # which evaluation episodes the grid's tables show: "test" (the reported numbers) or
     # "validation" (grids that choose a setting: the test episodes are never looked at)
     report_split: str = "test"
+    # held-out episodes per task simulated again to score each new encoder on the object's
+    # pixels (object_pixels.json beside it, as `murm check-encoders`); 0: no check
+    object_check_episodes: int = 20
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]

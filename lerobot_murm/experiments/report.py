@@ -77,6 +77,39 @@ def time_table(rows: list[dict], paper: dict[str, float]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def sweeps_epsilon(results: Path) -> bool:
+    """Whether a grid's cells set the reward threshold (Table 2): its report says on which scale."""
+    if not (results / "config.yaml").exists():
+        return False
+    cells = load_reproduce_config(results / "config.yaml").cells
+    return any(c.epsilon is not None or c.paper_epsilon is not None or c.epsilon_quantile is not None for c in cells)
+
+
+def epsilon_table(results: Path) -> str:
+    """The epsilon each cell ran at, on our encoders' scale, on the paper's (mapped) and as a
+    quantile of frame-to-goal distances, so that nobody reads the paper's value as ours."""
+    lines = ["| task | cell | epsilon, ours | on the paper's scale | quantile of frame-to-goal distances |",
+             "|---|---|---:|---:|---:|"]
+    runs = {}
+    for path in sorted((results / "runs").glob("*.json")):
+        r = json.loads(path.read_text())
+        runs.setdefault((r["task"], r["cell"]), r)  # every seed runs at the same epsilon (one encoder)
+    for (task, cell), r in runs.items():
+        paper, quantile = r.get("epsilon_paper_scale"), r.get("epsilon_quantile")
+        lines.append(f"| {task} | {cell} | {_values(r['epsilon'])} | {_values(paper)} | {_values(quantile)} |")
+    note = ("Epsilon is a threshold on the squared latent distance ||z - z_goal||^2 (eq. 4-5), so its value "
+            "depends on the encoder. The paper's epsilons are on its own encoders' scale; a cell named "
+            "`paper-epsX` ran at X mapped to ours: X / 2.0 (the paper's chosen value) times the epsilon "
+            "`murm encode` suggests for our encoder (`paper_epsilon_on_our_scale` in "
+            "lerobot_murm/vqvae/latent_distance.py). The quantile is the share of random frames closer "
+            "to their goal than that epsilon ('-': a run from before these were recorded).")
+    return "\n".join(lines) + f"\n\n{note}\n"
+
+
+def _values(values: list[float] | None) -> str:
+    return "-" if values is None else ", ".join("-" if v is None else f"{v:.3g}" for v in values)
+
+
 def run_list(results: Path) -> str:
     """One line per run, then the machine time the grid itself spent (reused runs were paid
     for by the grid that trained them)."""
@@ -120,6 +153,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
             + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
+            + (f"\nReward threshold of each cell:\n\n{epsilon_table(results)}" if sweeps_epsilon(results) else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
             + "Runs:\n\n" + run_list(results)

@@ -41,7 +41,17 @@ from lerobot_murm.policy.precision import resolve_precision
 from lerobot_murm.policy.train import TrainConfig, train
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
-from lerobot_murm.vqvae.latent_distance import distance_statistics, save_beside_encoder
+from lerobot_murm.vqvae.latent_distance import (
+    QUANTILE_KEY,
+    distance_statistics,
+    epsilon_at_quantile,
+    epsilon_on_paper_scale,
+    paper_epsilon_on_our_scale,
+    quantile_of_epsilon,
+    read_statistics,
+    save_beside_encoder,
+)
+from lerobot_murm.vqvae.object_pixels import OBJECT_PIXELS_FILE, check_encoders
 from lerobot_murm.vqvae.train import train_vqvae
 
 
@@ -84,7 +94,8 @@ def encoder_dir(config: ReproduceConfig, root: Path) -> Path:
 
 
 def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
-    """A camera's VQ-VAE in `<encoder_dir>/<camera>`, with its epsilon statistics beside it."""
+    """A camera's VQ-VAE in `<encoder_dir>/<camera>`, with its epsilon statistics and its object
+    check (`murm check-encoders`) beside it."""
     device = str(resolve_device(config.device))
     out = encoder_dir(config, root) / camera
     repo_id = f"local/{root.name}"
@@ -92,9 +103,15 @@ def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
     if not encoder_is_finished(out, steps):
         vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
         train_vqvae(repo_id, root, camera, out, vq_config, device=device)
-    if not (out / "latent_distance.json").exists():
+        (out / OBJECT_PIXELS_FILE).unlink(missing_ok=True)  # it was about the encoder trained before
+    if not (out / "latent_distance.json").exists() or QUANTILE_KEY not in read_statistics(out):
         cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)
         save_beside_encoder(distance_statistics(cache, episode_successes(repo_id, root)), out)
+    if not (out / OBJECT_PIXELS_FILE).exists() and config.object_check_episodes:
+        try:
+            check_encoders(repo_id, root, [out], config.object_check_episodes, device=device)
+        except ValueError as error:  # a diagnostic: the grid goes on without it
+            print(f"object check of {camera} skipped: {error}")
     return out
 
 
@@ -106,9 +123,35 @@ def result_path(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -
     return Path(config.results_dir) / config.name / "runs" / f"{task}__{cell.label}__seed{seed}.json"
 
 
+def cell_epsilon(cell: CellSpec, encoders: Path) -> list[float] | None:
+    """The cell's per-camera epsilon on our encoders' scale; None: the policy's default
+    (`murm encode`'s suggestion)."""
+    if cell.paper_epsilon is not None:
+        mapped = zip(cell.paper_epsilon, cell.cameras, strict=True)
+        return [paper_epsilon_on_our_scale(value, read_statistics(encoders / c)) for value, c in mapped]
+    if cell.epsilon_quantile is not None:
+        mapped = zip(cell.epsilon_quantile, cell.cameras, strict=True)
+        return [epsilon_at_quantile(quantile, read_statistics(encoders / c)) for quantile, c in mapped]
+    return cell.epsilon
+
+
+def epsilon_scales(epsilon: list[float], cameras: list[str], encoders: Path) -> dict:
+    """Each camera's epsilon (ours) on the paper's scale and as the share of random frames
+    that close to their goal: what REPORT.md labels a run's threshold by."""
+    pairs = [(e, read_statistics(encoders / c)) for e, c in zip(epsilon, cameras, strict=True)]
+    return {
+        "epsilon_paper_scale": [_rounded(epsilon_on_paper_scale(e, stats)) for e, stats in pairs],
+        "epsilon_quantile": [round(quantile_of_epsilon(e, stats), 4) for e, stats in pairs],
+    }
+
+
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 4)
+
+
 def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, root: Path, encoders: Path) -> TrainConfig:
     policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), encoder_dir=str(encoders),
-                        epsilon=cell.epsilon, **cell.policy)
+                        epsilon=cell_epsilon(cell, encoders), **cell.policy)
     t = config.train
     return TrainConfig(
         dataset=str(root), task=task, policy=policy, output_dir=str(run_dir(config, task, cell, seed)),
@@ -126,9 +169,10 @@ def hardware() -> str:
 
 def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
     """Everything that decides what a run trains (not its name, grid or evaluation masks)."""
+    scales = {k: v for k, v in (("paper_epsilon", cell.paper_epsilon), ("epsilon_quantile", cell.epsilon_quantile)) if v}
     return json.loads(json.dumps({  # as it reads back from a result file
         "task": task, "dataset": dataset_root(config, task, cell).name, "method": cell.method,
-        "cameras": list(cell.cameras), "epsilon": cell.epsilon, "policy": dict(cell.policy),
+        "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": dict(cell.policy),
         "vqvae": asdict(config.vqvae), "train": asdict(config.train), "seed": seed,
         # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
         "precision": str(resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))),
@@ -165,11 +209,12 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> 
     start = time.perf_counter()
     summary = train(train_config(config, task, cell, seed, root, encoders))
     out = Path(summary["checkpoint"]).parents[2]
+    epsilon = json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"]
     result = {
         "experiment": config.name, "task": task, "cell": cell.label, "method": cell.method, "cameras": cell.cameras,
         "seed": seed, "dataset": root.name, "steps": summary["steps"], "final": summary["final"],
         "final_validation": summary["final_validation"],
-        "epsilon": json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"],
+        "epsilon": epsilon, **epsilon_scales(epsilon, cell.cameras, encoders),
         "validation_seeds": summary["validation_seeds"], "eval_seeds": summary["eval_seeds"],
         "demonstration_success": _demonstration_success(root),
         # the training run's own wall time over all its sittings (older runs: this call's)

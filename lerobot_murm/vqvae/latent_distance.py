@@ -5,6 +5,12 @@ The reward says a camera's view reached its goal when the squared latent distanc
 successful episodes (goal reached) from random frames (mostly not reached): we
 report both distributions and suggest the threshold that maximises Youden's J =
 P(final-success frame below) - P(random frame below).
+
+The paper's epsilons (Table 2: 0.1, 1, 2, 3, 5) are squared distances in its own
+encoders' latent scale, which it does not publish, so they cannot be used on ours as
+they stand. `paper_epsilon_on_our_scale` maps them (see its docstring), and
+`epsilon_at_quantile` places a threshold by the distribution of frame-to-goal
+distances instead.
 """
 
 from __future__ import annotations
@@ -22,10 +28,14 @@ from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE  # noqa:
 from lerobot_murm.vqvae.latent_cache import LatentCache  # noqa: E402
 
 PERCENTILES = (5, 25, 50, 75, 95)
+QUANTILE_KEY = "random_frames_quantiles"  # percentiles 0, 1, ..., 100 of the random frames' distances
+PAPER_CHOSEN_EPSILON = 2.0  # paper 5.1: the best success in Table 2; the authors' code's default too
 
 
 def goal_distances(cache: LatentCache, rows: np.ndarray) -> np.ndarray:
     """Squared latent distance between frames `rows` and their episode's goal image."""
+    if not len(rows):  # e.g. no successful episode in the dataset
+        return np.zeros(0, np.float32)
     diff = cache.latents(rows) - cache.goal_latents(cache.episode_index[rows])
     return np.square(diff).sum(axis=1)
 
@@ -45,11 +55,66 @@ def distance_statistics(cache: LatentCache, episode_success: np.ndarray, samples
         "distance": "squared L2 between 720-number latents",
         "successful_final_frames": _summary(reached),
         "random_frames": _summary(random),
+        QUANTILE_KEY: np.percentile(random, np.arange(101)).tolist(),
         "suggested_epsilon": float(candidates[best]),
         "youden_j": float(below_reached[best] - below_random[best]),
         "_reached": reached,
         "_random": random,
     }
+
+
+def paper_epsilon_on_our_scale(paper_epsilon: float, stats: dict) -> float:
+    """A paper-scale epsilon (Table 2) on our encoder's scale: its ratio to the paper's chosen
+    2.0, times the epsilon `murm encode` suggests for this camera.
+
+    Why this mapping: the paper publishes no distances of its encoders, so no quantile of its
+    values can be known; the one point the two scales share is the threshold each side chose
+    for its encoders (the paper: 2.0, best success in its sweep; ours: the Youden-J
+    suggestion). A squared distance scales linearly when the latents are rescaled
+    (z -> a z gives d -> a^2 d), so the ratio to the chosen value is what carries over: the
+    paper's sweep 0.1, 1, 2, 3, 5 becomes 0.05, 0.5, 1, 1.5 and 2.5 times our suggestion.
+    """
+    if paper_epsilon <= 0:
+        raise ValueError(f"a paper-scale epsilon must be positive, got {paper_epsilon}")
+    if stats["suggested_epsilon"] <= 0:
+        raise ValueError(f"the {stats['camera']} encoder's suggested epsilon is 0 (its frames encode alike): "
+                         "there is no scale to map the paper's epsilon to")
+    return paper_epsilon / PAPER_CHOSEN_EPSILON * float(stats["suggested_epsilon"])
+
+
+def epsilon_on_paper_scale(epsilon: float, stats: dict) -> float | None:
+    """The inverse of `paper_epsilon_on_our_scale`: where our epsilon sits on the paper's scale
+    (None when the suggestion is 0 and there is no scale)."""
+    suggested = float(stats["suggested_epsilon"])
+    return epsilon / suggested * PAPER_CHOSEN_EPSILON if suggested > 0 else None
+
+
+def epsilon_at_quantile(quantile: float, stats: dict) -> float:
+    """The epsilon below which a share `quantile` (0-1) of random frames lies from their goal."""
+    if not 0.0 < quantile < 1.0:
+        raise ValueError(f"an epsilon quantile must be in (0, 1), got {quantile}")
+    return float(np.interp(100 * quantile, np.arange(101), _quantiles(stats)))
+
+
+def quantile_of_epsilon(epsilon: float, stats: dict) -> float:
+    """The share (0-1) of random frames closer to their goal than `epsilon`: where a threshold
+    sits in the distance distribution, comparable across encoders."""
+    quantiles = _quantiles(stats)
+    return float(np.interp(epsilon, quantiles, np.arange(101)) / 100)
+
+
+def _quantiles(stats: dict) -> list[float]:
+    if QUANTILE_KEY not in stats:
+        raise ValueError(f"these distance statistics ({stats.get('camera')}) predate {QUANTILE_KEY}; run `murm encode` again")
+    return stats[QUANTILE_KEY]
+
+
+def read_statistics(encoder_dir: Path) -> dict:
+    """The statistics `save_beside_encoder` wrote, or a one-line error saying how to make them."""
+    path = Path(encoder_dir) / LATENT_DISTANCE_FILE
+    if not path.exists():
+        raise FileNotFoundError(f"no {path}: run `murm encode` with this encoder first")
+    return json.loads(path.read_text())
 
 
 def public_statistics(stats: dict) -> dict:

@@ -33,11 +33,17 @@ CHECKPOINT_EVERY = 250  # steps between resume states (about 30 s of training on
 STATE_FILE = "training_state.pt"
 
 
+def heldout_episodes(episode_index: np.ndarray, fraction: float, seed: int) -> np.ndarray:
+    """The whole episodes kept out of an encoder's training (none if there is only one)."""
+    episodes = np.unique(episode_index)
+    n_held = max(1, int(round(fraction * len(episodes)))) if len(episodes) > 1 else 0
+    return np.random.default_rng(seed).choice(episodes, size=n_held, replace=False)
+
+
 def split_episodes(frames: CameraFrames, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Training and held-out image arrays; held-out = all frames and goals of a few whole episodes."""
-    episodes = np.unique(frames.episode_index)
-    n_held = max(1, int(round(fraction * len(episodes)))) if len(episodes) > 1 else 0
-    held = np.random.default_rng(seed).choice(episodes, size=n_held, replace=False)
+    held = heldout_episodes(frames.episode_index, fraction, seed)
+    n_held = len(held)
     in_held = np.isin(frames.episode_index, held)
     goal_held = np.isin(np.arange(len(frames.goals)), held)
     train = np.concatenate([frames.images[~in_held], frames.goals[~goal_held]])
@@ -75,8 +81,11 @@ def evaluate(model: VQVAE, images: np.ndarray, device: torch.device, batch: int 
     }
 
 
-def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: int = 12) -> None:
-    picks = images[np.linspace(0, len(images) - 1, count).astype(int)]
+def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: int = 12,
+                         masks: np.ndarray | None = None, title: str = "held-out episodes") -> None:
+    """Originals over reconstructions; `masks` (N, H, W), if given, are outlined on both."""
+    chosen = np.linspace(0, len(images) - 1, count).astype(int)
+    picks = images[chosen]
     with torch.no_grad():
         model.eval()
         recon = model.postprocess(model(torch.from_numpy(picks))["reconstruction"]).permute(0, 2, 3, 1).numpy()
@@ -85,10 +94,12 @@ def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: in
     for i in range(count):
         for row, image in ((0, picks[i]), (1, recon[i])):
             axes[row, i].imshow(image, interpolation="nearest")
+            if masks is not None and masks[chosen[i]].any():
+                axes[row, i].contour(masks[chosen[i]], levels=[0.5], colors="cyan", linewidths=0.7)
             axes[row, i].set_xticks([]), axes[row, i].set_yticks([])
     axes[0, 0].set_ylabel("original", fontsize=8)
     axes[1, 0].set_ylabel("VQ-VAE", fontsize=8)
-    fig.suptitle(f"{model.config.camera} camera, held-out episodes", fontsize=9)
+    fig.suptitle(f"{model.config.camera} camera, {title}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

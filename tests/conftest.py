@@ -52,6 +52,7 @@ def tiny_pipeline(tmp_path_factory):
     VQ-VAE per camera, and the latent-distance file the policy takes its epsilon from.
     Returns (dataset_root, encoder_dir); encoder_dir/<camera> are the checkpoints."""
     from lerobot_murm.collection import CollectConfig, collect
+    from lerobot_murm.expert import PAPER_NOISE_STD
     from lerobot_murm.collection.dataset import episode_successes
     from lerobot_murm.vqvae import VQVAEConfig
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
@@ -60,7 +61,10 @@ def tiny_pipeline(tmp_path_factory):
 
     base = tmp_path_factory.mktemp("pipeline")
     root, encoders, cache = base / "place_in_box", base / "vqvae", base / "cache"
-    collect(CollectConfig(task="place_in_box", root=root, episodes=6, workers=1, cameras=("global", "adjacent"), image_size=16))
+    # the paper's std, at which our expert succeeds in every episode: the tests of the later
+    # stages need successful episodes, not the default recipe's 75 %
+    collect(CollectConfig(task="place_in_box", root=root, episodes=6, workers=1, cameras=("global", "adjacent"),
+                          image_size=16, noise_std=PAPER_NOISE_STD))
     tiny = VQVAEConfig(steps=30, batch_size=32, hidden_channels=16, residual_channels=8, codebook_size=32)
     successes = episode_successes(TINY_REPO, root)
     for camera in ("global", "adjacent"):

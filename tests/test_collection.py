@@ -15,7 +15,6 @@ import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.collection import CollectConfig, EpisodeRecipe, collect, run_episode
-from lerobot_murm.collection.collect import CollectionInterrupted
 
 MURM = Path(sys.executable).parent / "murm"
 SMALL = {"cameras": ("global", "active"), "image_size": 16}

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from lerobot_murm.collection import CollectConfig, collect
+from lerobot_murm.expert import PAPER_NOISE_STD
 from lerobot_murm.collection.dataset import episode_successes
 from lerobot_murm.vqvae import VQVAE, VQVAEConfig
 from lerobot_murm.vqvae.frames import load_camera_frames, open_dataset
@@ -28,7 +29,8 @@ TINY = VQVAEConfig(steps=15, batch_size=16, hidden_channels=16, residual_channel
 @pytest.fixture(scope="module")
 def dataset_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("vq") / "ds"
-    collect(CollectConfig(task="pick_up", root=root, episodes=3, workers=1, cameras=("global", "top"), image_size=16))
+    collect(CollectConfig(task="pick_up", root=root, episodes=3, workers=1, cameras=("global", "top"), image_size=16,
+        noise_std=PAPER_NOISE_STD))
     return root
 
 
@@ -122,7 +124,8 @@ def test_a_changed_encoder_or_dataset_never_gets_a_stale_cache(dataset_root, enc
 
     grown = tmp_path / "grown"
     subprocess.run(["cp", "-r", str(dataset_root), str(grown)], check=True)
-    collect(CollectConfig(task="pick_up", root=grown, episodes=4, workers=1, cameras=("global", "top"), image_size=16, resume=True))
+    collect(CollectConfig(task="pick_up", root=grown, episodes=4, workers=1, cameras=("global", "top"), image_size=16,
+        noise_std=PAPER_NOISE_STD, resume=True))
     cache = build_latent_cache(REPO, grown, encoder_dir, tmp_path / "cache")
     assert len(list((tmp_path / "cache").glob("*.npz"))) == 3
     assert len(cache.indices) == 400

@@ -163,7 +163,7 @@ def test_other_commands_name_the_missing_folder(tmp_path, capsys):
     code, line = murm_error(["report", "--results", tmp_path / "none"], capsys)
     assert code == 1 and f"no results folder {tmp_path / 'none'}" in line
     code, line = murm_error(["push", "--root", tmp_path, "--repo-id", "user/ds"], capsys)
-    assert code == 1 and "is not a dataset `murm collect` made" in line
+    assert code == 1 and "is not a dataset `murm collect` or `murm encode --to-dataset` made" in line
 
 
 def test_debug_shows_the_traceback(tmp_path, monkeypatch):

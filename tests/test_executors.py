@@ -42,11 +42,13 @@ def test_jobs_divide_the_cores_between_their_processes():
     (["--executor=ray", "--jobs=2"], "--jobs is for the local executor"),
     (["--address=127.0.0.1:1"], "--address is for --executor ray"),
 ])
-def test_bad_executor_flags_stop_with_one_line(flags, message):
+def test_bad_executor_flags_stop_with_one_line(flags, message, capsys):
     from lerobot_murm.cli import main
 
-    with pytest.raises(SystemExit, match=message):
+    with pytest.raises(SystemExit) as stop:
         main(["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *flags])
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("murm reproduce:")]
+    assert stop.value.code == 2 and len(lines) == 1 and message in lines[0], lines
     assert make_executor("local").__class__ is SerialExecutor
 
 

@@ -168,7 +168,7 @@ def _flush(dataset: LeRobotDataset, config: CollectConfig, successes: list[bool]
     """Close the files (footers written), record them, and go on in new files."""
     dataset.finalize()
     murm_dataset.write_summary(config.root, config.recipe, np.array(successes, bool), config.episodes)
-    resumed = LeRobotDataset.resume(config.repo_id, root=config.root)
+    resumed = LeRobotDataset.resume(config.repo_id, root=config.root, video_backend="pyav")
     datasets.disable_progress_bars()  # LeRobot turns them back on
     return resumed
 

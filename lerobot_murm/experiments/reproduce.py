@@ -14,7 +14,6 @@ or a Ray cluster).
 
 from __future__ import annotations
 
-import csv
 import json
 import platform
 import time
@@ -36,7 +35,7 @@ from lerobot_murm.experiments.configuration_reproduce import CellSpec, Reproduce
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.learning_curve import validation_curve
+from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import resolve_precision
 from lerobot_murm.policy.train import TrainConfig, train
 from lerobot_murm.vqvae import VQVAEConfig
@@ -233,9 +232,7 @@ def _store(path: Path, result: dict) -> dict:
 
 def _read_curve(path: Path) -> list[list[float]]:
     """[step, mask_p, success_rate] of the validation evaluations (the learning curve)."""
-    with path.open() as f:
-        rows = validation_curve([{k: float(v) if k not in ("split", "mask_mode") else v for k, v in row.items()}
-                                 for row in csv.DictReader(f)])
+    rows = validation_curve(read_run_csv(path))
     return [[r["step"], r["mask_p"], r["success_rate"]] for r in rows]
 
 

@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
-def _read(path: Path) -> list[dict[str, float | str]]:
+def read_run_csv(path: Path) -> list[dict[str, float | str]]:
     """Rows of a run's CSV, numbers as floats (eval.csv's split and mask_mode stay text)."""
     if not path.exists():
         return []
@@ -28,7 +28,7 @@ def validation_curve(eval_rows: list[dict]) -> list[dict]:
 def plot_learning_curve(run_dir: Path) -> Path:
     """Success rate per masking level over training steps, beside the three IQL losses."""
     run_dir = Path(run_dir)
-    evals, logs = validation_curve(_read(run_dir / "eval.csv")), _read(run_dir / "log.csv")
+    evals, logs = validation_curve(read_run_csv(run_dir / "eval.csv")), read_run_csv(run_dir / "log.csv")
     fig, (ax_success, ax_loss) = plt.subplots(1, 2, figsize=(10, 3.6))
     for mask_p in sorted({row["mask_p"] for row in evals}):
         rows = [r for r in evals if r["mask_p"] == mask_p]

@@ -36,7 +36,8 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from torch.utils.flop_counter import FlopCounterMode
 
-from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
+from lerobot_murm.features import goal_image_key, image_key
+from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.precision import resolve_precision
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
@@ -72,7 +73,7 @@ def make_policy(method: str, cameras: list[str], device: torch.device, **fields)
     encoders = {c: asdict(VQVAEConfig(camera=c)) for c in cameras}
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 48, 48))
     config = MurmConfig(method=method, cameras=cameras, encoders=encoders, epsilon=[2.0] * len(cameras), **fields)
-    config.input_features = {k: image for c in cameras for k in (image_feature_key(c), goal_feature_key(c))}
+    config.input_features = {k: image for c in cameras for k in (image_key(c), goal_image_key(c))}
     config.output_features = {"action": PolicyFeature(type=FeatureType.ACTION, shape=(4,))}
     return MurmPolicy(config).to(device)
 

@@ -155,7 +155,8 @@ def _train(args: argparse.Namespace) -> None:
 
 def _reproduce(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.executors import make_executor
-    from lerobot_murm.experiments.reproduce import load_reproduce_config, reproduce
+    from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+    from lerobot_murm.experiments.reproduce import reproduce
     from lerobot_murm.stopping import TrainingInterrupted
 
     config = load_reproduce_config(args.config, args.overrides)

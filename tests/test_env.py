@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from lerobot_murm.env import CAMERA_NAMES, GYM_IDS, TASK_NAMES, MurmEnv, goal_key
+from lerobot_murm.env import CAMERA_NAMES, GYM_IDS, TASK_NAMES, MurmEnv
+from lerobot_murm.features import goal_key
 from lerobot_murm.env.tasks import WORKSPACE_HIGH, WORKSPACE_LOW
 from lerobot_murm.expert import ScriptedExpert
 

@@ -20,7 +20,8 @@ from lerobot_murm.collection.hub import pull_dataset, push_dataset
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.replay import replay_for_dataset
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
-from lerobot_murm.vqvae.latent_dataset import latent_goal_key, latent_key, read_latent_caches
+from lerobot_murm.features import latent_goal_key, latent_key
+from lerobot_murm.vqvae.latent_dataset import read_latent_caches
 
 BIN = Path(sys.executable).parent
 CAMERAS = ["global", "adjacent"]
@@ -143,18 +144,18 @@ def test_lerobot_train_learns_from_the_latent_dataset_and_lerobot_eval_runs_its_
 
 
 def test_lerobot_train_under_accelerate_with_two_processes_saves_a_checkpoint(tiny_pipeline, latents, tmp_path):
+    """Two data-parallel ranks on the CPU: accelerate's `--multi_gpu` starts them through torchrun
+    (gloo when there is no GPU); `--cpu --num_processes 2` alone would start one process."""
     encoders = tiny_pipeline[1]
-    log = run([BIN / "accelerate", "launch", "--cpu", "--num_processes", "2", "--num_machines", "1",
+    log = run([BIN / "accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
                "--mixed_precision", "no", "--dynamo_backend", "no", BIN / "lerobot-train", *TRAIN_ARGS,
                f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}", "--steps=3", "--save_freq=3",
                "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)
-    assert "critic_loss" in log
+    assert "critic_loss" in log and "Effective batch size: 16 x 2 = 32" in log
     checkpoint = tmp_path / "run" / "checkpoints" / "000003"
     assert (checkpoint / "pretrained_model" / "model.safetensors").exists()
     state = json.loads((checkpoint / "training_state" / "training_step.json").read_text())
-    # the issue's exact command trains and checkpoints; on this CPU-only machine accelerate
-    # recorded num_processes 1 (whether it really ran two ranks is still open, issue 18)
-    assert state["step"] == 3 and state["batch_size"] == 16
+    assert state == {"step": 3, "num_processes": 2, "batch_size": 16}
 
 
 def test_push_uploads_the_latent_dataset_with_its_card_and_pull_gets_it_back(latents, hub, tmp_path):

@@ -10,7 +10,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.datasets.sampler import EpisodeAwareSampler
 from lerobot.policies.factory import get_policy_class, make_policy, make_pre_post_processors
 
-from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
+from lerobot_murm.features import goal_image_key, image_key
+from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.train import build_policy
 
@@ -40,7 +41,7 @@ def observation(policy: MurmPolicy, batch: int = 3, seed: int = 0) -> dict[str, 
     return {
         key: torch.rand(batch, 3, size, size, generator=g)
         for c in policy.cameras
-        for key in (image_feature_key(c), goal_feature_key(c))
+        for key in (image_key(c), goal_image_key(c))
     }
 
 
@@ -113,11 +114,11 @@ def test_actor_scoped_dropout_hides_views_from_the_policy_only(tiny_pipeline, da
 def test_features_are_checked_against_the_encoders(tiny_pipeline):
     config = make_config(tiny_pipeline[1])
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))
-    config.input_features = {image_feature_key("global"): image, goal_feature_key("global"): image}
+    config.input_features = {image_key("global"): image, goal_image_key("global"): image}
     with pytest.raises(ValueError, match="needs observation.images.adjacent"):
         config.validate_features()
     big = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 48, 48))
-    config.input_features = {k: big for c in ("global", "adjacent") for k in (image_feature_key(c), goal_feature_key(c))}
+    config.input_features = {k: big for c in ("global", "adjacent") for k in (image_key(c), goal_image_key(c))}
     with pytest.raises(ValueError, match="encoder takes \\(3, 16, 16\\)"):
         config.validate_features()
 
@@ -162,7 +163,7 @@ def test_a_policy_made_for_an_image_dataset_holds_its_encoded_frames_and_refuses
     """lerobot-train on images: every frame encoded once at construction; a transition needs a successor."""
     policy = make_policy(make_config(tiny_pipeline[1]), ds_meta=dataset.meta)
     rows = [0, 57, 599]
-    images = torch.stack([dataset[i][image_feature_key("adjacent")] for i in rows])
+    images = torch.stack([dataset[i][image_key("adjacent")] for i in rows])
     torch.testing.assert_close(policy.replay.latents[1][rows], policy.encode("adjacent", images))
     with pytest.raises(ValueError, match="last frame of an episode"):
         policy.forward({"index": torch.tensor([0, 99])})
@@ -196,7 +197,7 @@ def test_masking_blanks_a_single_camera_image(tiny_pipeline, dataset):
     rate = (latent == blank).all(-1).float().mean().item()
     assert 0.07 < rate < 0.13
     goal = state[:, 0, policy.config.latent_dim :]
-    torch.testing.assert_close(goal, policy.encode("global", batch[goal_feature_key("global")]))  # goals stay
+    torch.testing.assert_close(goal, policy.encode("global", batch[goal_image_key("global")]))  # goals stay
 
 
 def test_checkpoint_carries_the_encoders_and_loads_without_them(policy, tiny_pipeline, tmp_path):

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from lerobot_murm.experiments.reproduce import load_reproduce_config
+from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.policy.train import load_train_config
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
@@ -74,7 +74,7 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     # another grid with the same single-view recipe takes the finished run instead of training
     other = tmp_path / "other.yaml"
     other.write_text("name: other\ntasks: [place_in_box]\nseeds: [0]\n"
-                     "cells:\n  - {method: single, cameras: [global], label: global-only}\n")
+                     "cells:\n  - {method: single, cameras: [global], label: global-only, policy: {precision: fp32}}\n")
     murm(["reproduce", "--config", str(other), *args[3:]], tmp_path)  # the same TINY sizes as smoke
     assert not (tmp_path / "work" / "runs" / "other").exists()
     reused = json.loads((tmp_path / "results/other/runs/place_in_box__global-only__seed0.json").read_text())

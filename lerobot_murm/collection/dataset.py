@@ -26,21 +26,13 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_murm.checkpointing import write_atomic
 from lerobot_murm.collection.durability import snapshot
 from lerobot_murm.collection.episodes import Episode, EpisodeRecipe
-from lerobot_murm.env import goal_key
 from lerobot_murm.env.murm_env import CONTROL_FPS
+from lerobot_murm.features import ACTION, ENVIRONMENT_STATE, REWARD, STATE, goal_image_key, image_key
 
 SUMMARY_FILE = "meta/murm_collection.json"
 STAGING_DIR = "images/murm-staging"
 PNG_COMPRESS_LEVEL = 6  # what LeRobot's writer uses for `image` features
 IMAGE_NAMES = ["height", "width", "channels"]
-
-
-def image_key(camera: str) -> str:
-    return f"observation.images.{camera}"
-
-
-def goal_image_key(camera: str) -> str:
-    return f"observation.images.{goal_key(camera)}"
 
 
 def dataset_features(cameras: tuple[str, ...], image_size: int) -> dict:
@@ -50,14 +42,14 @@ def dataset_features(cameras: tuple[str, ...], image_size: int) -> dict:
         features[image_key(camera)] = image
         features[goal_image_key(camera)] = image
     return features | {
-        "observation.state": {"dtype": "float32", "shape": (4,), "names": ["ee_x", "ee_y", "ee_z", "finger_width"]},
-        "observation.environment_state": {
+        STATE: {"dtype": "float32", "shape": (4,), "names": ["ee_x", "ee_y", "ee_z", "finger_width"]},
+        ENVIRONMENT_STATE: {
             "dtype": "float32",
             "shape": (6,),
             "names": ["object_x", "object_y", "object_z", "goal_x", "goal_y", "goal_z"],
         },
-        "action": {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "gripper"]},
-        "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
+        ACTION: {"dtype": "float32", "shape": (4,), "names": ["dx", "dy", "dz", "gripper"]},
+        REWARD: {"dtype": "float32", "shape": (1,), "names": None},
         "next.done": {"dtype": "bool", "shape": (1,), "names": None},
         "next.success": {"dtype": "bool", "shape": (1,), "names": None},
     }
@@ -132,10 +124,10 @@ def save_staged_episode(dataset: LeRobotDataset, episode: StagedEpisode, task_de
             "frame_index": np.arange(steps),
             "timestamp": np.arange(steps, dtype=np.float32) / dataset.meta.fps,
             **episode.images,
-            "observation.state": episode.state,
-            "observation.environment_state": episode.environment_state,
-            "action": episode.action,
-            "next.reward": episode.success.astype(np.float32).reshape(steps, 1),
+            STATE: episode.state,
+            ENVIRONMENT_STATE: episode.environment_state,
+            ACTION: episode.action,
+            REWARD: episode.success.astype(np.float32).reshape(steps, 1),
             "next.done": last,
             "next.success": episode.success.reshape(steps, 1),
         }

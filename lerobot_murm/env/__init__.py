@@ -4,7 +4,7 @@ import gymnasium as gym
 
 from lerobot_murm.env import bullet  # noqa: F401  (first: imports pybullet without its build-time line)
 from lerobot_murm.env.cameras import CAMERA_NAMES
-from lerobot_murm.env.murm_env import EPISODE_STEPS, MurmEnv, goal_key
+from lerobot_murm.env.murm_env import EPISODE_STEPS, MurmEnv
 from lerobot_murm.env.tasks import TASK_NAMES
 
 GYM_IDS: dict[str, str] = {
@@ -22,4 +22,4 @@ for _task, _gym_id in GYM_IDS.items():
             kwargs={"task": _task},
         )
 
-__all__ = ["CAMERA_NAMES", "EPISODE_STEPS", "GYM_IDS", "TASK_NAMES", "MurmEnv", "goal_key"]
+__all__ = ["CAMERA_NAMES", "EPISODE_STEPS", "GYM_IDS", "TASK_NAMES", "MurmEnv"]

@@ -21,6 +21,7 @@ from lerobot_murm.env.cameras import CAMERA_NAMES, CameraRig, validate_camera_na
 from lerobot_murm.env.robot import MAX_FINGER_WIDTH, Panda
 from lerobot_murm.env.tasks import WORKSPACE_HIGH, WORKSPACE_LOW, make_task
 from lerobot_murm.env.video_frame import compose_frame, tile_size
+from lerobot_murm.features import goal_key
 
 PHYSICS_TIMESTEP = 1.0 / 240.0
 SUBSTEPS = 10
@@ -33,7 +34,6 @@ SCENE_VERSION = 2
 HOME_EE_POSITION = np.array([0.45, 0.0, 0.22])
 HOME_JITTER_M = 0.02
 SETTLE_SUBSTEPS = 20
-GOAL_SUFFIX = "_goal"
 STATE_DIM = 4  # end-effector xyz, finger opening
 ENV_STATE_DIM = 6  # object xyz, goal xyz
 MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 8, 512
@@ -43,10 +43,6 @@ TASK_DESCRIPTIONS = {
     "place_in_random_box": "put the cube into the box shown in the goal images",
     "pick_up": "pick up the object that is lifted in the goal images",
 }
-
-
-def goal_key(camera: str) -> str:
-    return f"{camera}{GOAL_SUFFIX}"
 
 
 class MurmEnv(gym.Env):

@@ -31,7 +31,7 @@ from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
 from lerobot_murm.env.murm_env import SCENE_VERSION
 from lerobot_murm.expert import default_noise_std
-from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
+from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig

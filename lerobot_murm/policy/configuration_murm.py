@@ -18,6 +18,7 @@ from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig, OptimizerConfig
 
 from lerobot_murm.device import resolve_device
+from lerobot_murm.features import ACTION, LATENTS_PREFIX, goal_image_key, image_key, latent_goal_key, latent_key
 from lerobot_murm.policy.precision import PRECISIONS
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
 
@@ -25,14 +26,6 @@ METHODS = ("single", "concat", "dropout", "separated_q")
 DROPOUT_SCOPES = ("all", "actor")
 DROPPED_Q_MODES = ("zeros", "excluded")
 EVAL_MASK_MODES = ("paper", "authors")
-
-
-def image_feature_key(camera: str) -> str:
-    return f"observation.images.{camera}"
-
-
-def goal_feature_key(camera: str) -> str:
-    return f"observation.images.{camera}_goal"
 
 
 @OptimizerConfig.register_subclass("fused_adam")
@@ -210,7 +203,7 @@ class MurmConfig(PreTrainedConfig):
 
     @property
     def action_dim(self) -> int:
-        return self.output_features["action"].shape[0] if self.output_features else 4
+        return self.output_features[ACTION].shape[0] if self.output_features else 4
 
     # --- LeRobot's PreTrainedConfig interface -------------------------------------------
     @property
@@ -240,9 +233,7 @@ class MurmConfig(PreTrainedConfig):
 
     def validate_features(self) -> None:
         """The data has each camera's images and goal images, or their codes (a latent dataset)."""
-        from lerobot_murm.vqvae.latent_dataset import latent_goal_key, latent_key
-
-        if any(k.startswith(latent_key("")) for k in self.input_features):
+        if any(k.startswith(LATENTS_PREFIX) for k in self.input_features):
             for camera in self.cameras:
                 grid = self.encoder_config(camera).grid_size
                 for key in (latent_key(camera), latent_goal_key(camera)):
@@ -255,7 +246,7 @@ class MurmConfig(PreTrainedConfig):
         visual = {k: ft for k, ft in self.input_features.items() if ft.type is FeatureType.VISUAL}
         for camera in self.cameras:
             size = self.encoder_config(camera).image_size
-            for key in (image_feature_key(camera), goal_feature_key(camera)):
+            for key in (image_key(camera), goal_image_key(camera)):
                 if key not in visual:
                     raise ValueError(f"the policy needs {key}; the data has {sorted(visual)}")
                 if tuple(visual[key].shape) != (3, size, size):

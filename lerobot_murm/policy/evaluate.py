@@ -18,8 +18,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from lerobot_murm.env import EPISODE_STEPS, GYM_IDS, goal_key
-from lerobot_murm.policy.configuration_murm import goal_feature_key, image_feature_key
+from lerobot_murm.env import EPISODE_STEPS, GYM_IDS
+from lerobot_murm.features import goal_image_key, goal_key, image_key
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 
 
@@ -86,7 +86,7 @@ class Evaluator:
         pixels = observation["pixels"]
         batch = {}
         for camera in self.cameras:
-            for key, feature in ((camera, image_feature_key(camera)), (goal_key(camera), goal_feature_key(camera))):
+            for key, feature in ((camera, image_key(camera)), (goal_key(camera), goal_image_key(camera))):
                 images = torch.from_numpy(np.ascontiguousarray(pixels[key])).to(device)
                 batch[feature] = images.permute(0, 3, 1, 2).float().div_(255.0)
         return batch

@@ -21,7 +21,8 @@ import torch
 from lerobot.policies.pretrained import PreTrainedPolicy
 from torch import Tensor, nn
 
-from lerobot_murm.policy.configuration_murm import MurmConfig, goal_feature_key, image_feature_key
+from lerobot_murm.features import goal_image_key, image_key
+from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import (
     DoubleQ,
     GaussianPolicy,
@@ -144,7 +145,7 @@ class MurmPolicy(PreTrainedPolicy):
         a step that would mask every camera masks none (the paper's rule). One camera: its
         image goes black, so the policy sees a blank view.
         """
-        images = {c: batch[image_feature_key(c)] for c in self.cameras}
+        images = {c: batch[image_key(c)] for c in self.cameras}
         batch_size, device = images[self.cameras[0]].shape[0], images[self.cameras[0]].device
         visible = self._evaluation_visibility(batch_size, mask_p, mask_mode)
         keep = torch.ones_like(visible)
@@ -153,7 +154,7 @@ class MurmPolicy(PreTrainedPolicy):
         else:
             keep = visible
         pairs = [
-            torch.cat([self.encode(c, images[c]), self.encode(c, batch[goal_feature_key(c)])], dim=-1)
+            torch.cat([self.encode(c, images[c]), self.encode(c, batch[goal_image_key(c)])], dim=-1)
             for c in self.cameras
         ]
         return self.normalize(torch.stack(pairs, dim=1)) * keep.to(device).unsqueeze(-1)

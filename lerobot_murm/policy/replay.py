@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from lerobot_murm import features
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import sparse_reward
 from lerobot_murm.vqvae.latent_cache import LatentCache, build_latent_cache, encoder_fingerprint
@@ -125,6 +126,6 @@ def replay_for_dataset(config: MurmConfig, dataset: LeRobotDataset, cache_dir: P
     else:
         caches = [build_latent_cache(dataset.repo_id, dataset.root, encoder_dir / c, cache_dir, str(device))
                   for c in config.cameras]
-    actions = dataset.hf_dataset.with_format("arrow").select_columns(["action"])[:]["action"]
+    actions = dataset.hf_dataset.with_format("arrow").select_columns([features.ACTION])[:][features.ACTION]
     actions = np.array(actions.combine_chunks().flatten(), np.float32).reshape(len(dataset), -1)
     return LatentReplay(caches, actions, config.epsilon, config.her_ratio, device=device)

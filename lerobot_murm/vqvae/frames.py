@@ -22,7 +22,7 @@ import pyarrow as pa
 from datasets.exceptions import DatasetGenerationError
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_murm.collection.dataset import goal_image_key, image_key
+from lerobot_murm.features import goal_image_key, image_cameras, image_key
 
 
 @dataclass
@@ -68,9 +68,7 @@ def open_dataset(repo_id: str, root: Path | str | None) -> LeRobotDataset:
 
 
 def dataset_cameras(dataset: LeRobotDataset) -> list[str]:
-    prefix = "observation.images."
-    keys = [k for k in dataset.meta.camera_keys if not k.endswith("_goal")]
-    return [k[len(prefix) :] for k in keys]
+    return image_cameras(dataset.meta.camera_keys)
 
 
 def dataset_fingerprint(dataset: LeRobotDataset) -> str:

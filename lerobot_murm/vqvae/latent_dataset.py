@@ -24,27 +24,18 @@ import numpy as np
 from lerobot.datasets.dataset_tools import modify_features
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from lerobot_murm.features import ENVIRONMENT_STATE, LATENTS_PREFIX, is_goal, latent_goal_key, latent_key
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 from lerobot_murm.vqvae.frames import dataset_fingerprint
 from lerobot_murm.vqvae.latent_cache import LatentCache, encoder_fingerprint
 
 LATENTS_FILE = "meta/murm_latents.json"
 CODE_DTYPE = "int16"
-PRIVILEGED_STATE = "observation.environment_state"  # object and goal positions, for the scripted expert
-
-
-def latent_key(camera: str) -> str:
-    return f"observation.latent.{camera}"
-
-
-def latent_goal_key(camera: str) -> str:
-    return f"observation.latent.{camera}_goal"
 
 
 def latent_cameras(features: dict) -> list[str]:
     """The cameras a dataset holds codes of (none for a dataset of images)."""
-    prefix = latent_key("")
-    return [k[len(prefix) :] for k in features if k.startswith(prefix) and not k.endswith("_goal")]
+    return [k[len(LATENTS_PREFIX):] for k in features if k.startswith(LATENTS_PREFIX) and not is_goal(k)]
 
 
 def write_latent_dataset(
@@ -68,8 +59,8 @@ def write_latent_dataset(
         added[latent_goal_key(cache.camera)] = (goals, codes)
     # every column costs LeRobot's loader time per row: keep only what a policy may use
     removed = list(dataset.meta.camera_keys)
-    if PRIVILEGED_STATE in dataset.meta.features:
-        removed.append(PRIVILEGED_STATE)
+    if ENVIRONMENT_STATE in dataset.meta.features:
+        removed.append(ENVIRONMENT_STATE)
     latent = modify_features(dataset, add_features=added, remove_features=removed, output_dir=out, repo_id=repo_id)
     description = {
         "source": {"repo_id": dataset.repo_id, "fingerprint": dataset_fingerprint(dataset)},

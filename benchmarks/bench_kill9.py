@@ -4,12 +4,16 @@ episodes still there after the repair `--resume` does. Expected: at most `--flus
 Not a test. Run it and copy the table into BENCHMARKS.md:
 
     .venv/bin/python benchmarks/bench_kill9.py [--episodes 60] [--flush-every 10] [--kills 3]
+    .venv/bin/python benchmarks/bench_kill9.py --task place_in_random_box --full-size --episodes 1000 \
+        --spread --keep DIR      # a real default-recipe collection, killed three times across its length
 
-One collection (place_in_box, the tiny two-camera 16x16 recipe of the tests unless
+One collection (`--task`, place_in_box by default; the tiny two-camera 16x16 recipe of the tests unless
 `--full-size`) is killed with SIGKILL at random moments (seeded), each time at least one
 flush after the previous kill; after each kill the dataset is repaired as `--resume`
 repairs it and read back with stock LeRobot, and the collection is resumed. "Finished" is
-the progress bar's count at the kill (episodes handed to LeRobot's writer).
+the progress bar's count at the kill (episodes handed to LeRobot's writer). `--spread` puts
+the kills across the whole collection instead of one flush apart at its start; `--keep DIR`
+collects into DIR and keeps the dataset (its expert success is printed).
 """
 
 from __future__ import annotations
@@ -62,6 +66,9 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--full-size", action="store_true", help="five 48x48 cameras instead of two 16x16")
+    parser.add_argument("--task", default="place_in_box")
+    parser.add_argument("--spread", action="store_true", help="kills spread over the whole collection")
+    parser.add_argument("--keep", type=Path, default=None, help="collect into this folder and keep it")
     args = parser.parse_args()
     recipe = [] if args.full_size else ["--cameras", "global,active", "--image-size", "16"]
     rng = random.Random(args.seed)
@@ -69,13 +76,15 @@ def main() -> None:
     print("| kill | finished at the kill | kept after repair | lost | workers gone after |")
     print("|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory() as tmp:
-        root, log = Path(tmp) / "ds", Path(tmp) / "stderr.txt"
-        command = [str(MURM), "collect", "--task", "place_in_box", "--root", str(root), *recipe,
+        root, log = args.keep or Path(tmp) / "ds", Path(tmp) / "stderr.txt"
+        command = [str(MURM), "collect", "--task", args.task, "--root", str(root), *recipe,
                    "--episodes", str(args.episodes), "--workers", str(args.workers), "--flush-every", str(args.flush_every)]
         worst = 0
         for kill in range(1, args.kills + 1):
             kept_before = read_summary(root)["episodes"] if (root / SUMMARY_FILE).exists() else 0
             target = kept_before + args.flush_every + rng.randint(0, args.flush_every - 1)
+            if args.spread:  # near kill / (kills + 1) of the way through
+                target = max(target, kill * args.episodes // (args.kills + 1) + rng.randint(0, args.flush_every - 1))
             with log.open("w") as stderr:
                 process = subprocess.Popen(command + (["--resume"] if kill > 1 else []), stdout=subprocess.DEVNULL,
                                            stderr=stderr)
@@ -101,8 +110,9 @@ def main() -> None:
             print(f"| {kill} | {at_kill} | {kept} | {at_kill - kept} | {workers_s:.1f} s |", flush=True)
         done = subprocess.run(command + ["--resume"], capture_output=True, text=True)
         assert done.returncode == 0, done.stderr[-2000:]
-        total = json.loads((root / SUMMARY_FILE).read_text())["episodes"]
-    print(f"\nworst loss {worst} episodes with --flush-every {args.flush_every}; resumed to {total} episodes")
+        summary = json.loads((root / SUMMARY_FILE).read_text())
+    print(f"\nworst loss {worst} episodes with --flush-every {args.flush_every}; resumed to {summary['episodes']} "
+          f"episodes; expert success {summary['success_rate']:.1%}")
 
 
 if __name__ == "__main__":

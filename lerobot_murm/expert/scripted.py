@@ -98,7 +98,7 @@ PAPER_NOISE_STD = 0.1  # paper 4.1: a = clip(a* + k N(0, 0.1), -1, 1) with 0 <= 
 # 75 % success: failures then come from the noise (a gripper command flipped open drops the
 # object, missed grasps, slow carries that run out of time), not from a broken expert.
 # Measured with `benchmarks/bench_expert.py --calibrate` (seeded episodes; BENCHMARKS.md).
-CALIBRATED_NOISE_STD: dict[str, float] = {"place_in_box": 0.53, "place_in_random_box": 0.51, "pick_up": 0.83}
+CALIBRATED_NOISE_STD: dict[str, float] = {"place_in_box": 0.53, "place_in_random_box": 0.50, "pick_up": 0.83}
 
 
 def default_noise_std(task: str) -> float:

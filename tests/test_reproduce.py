@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.policy.train import load_train_config
@@ -71,10 +72,12 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert len(rows) == 4 and {row["seeds"] for row in rows} == {"2"}
     assert "training seeds 0, 1;" in (results / "table.md").read_text()
 
-    # another grid with the same single-view recipe takes the finished run instead of training
+    # another grid with the same single-view recipe (the smoke's data and cell, one masking level) takes the
+    # finished run instead of training
+    smoke = yaml.safe_load((REPO / "configs/reproduce/smoke.yaml").read_text())
+    single = next(cell for cell in smoke["cells"] if cell["method"] == "single")
     other = tmp_path / "other.yaml"
-    other.write_text("name: other\ntasks: [place_in_box]\nseeds: [0]\n"
-                     "cells:\n  - {method: single, cameras: [global], label: global-only, policy: {precision: fp32}}\n")
+    other.write_text(yaml.safe_dump(smoke | {"name": "other", "cells": [single | {"eval_mask_p": [0.0], "label": "global-only"}]}))
     murm(["reproduce", "--config", str(other), *args[3:]], tmp_path)  # the same TINY sizes as smoke
     assert not (tmp_path / "work" / "runs" / "other").exists()
     reused = json.loads((tmp_path / "results/other/runs/place_in_box__global-only__seed0.json").read_text())

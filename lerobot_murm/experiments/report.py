@@ -110,17 +110,18 @@ def _values(values: list[float] | None) -> str:
     return "-" if values is None else ", ".join("-" if v is None else f"{v:.3g}" for v in values)
 
 
-def run_list(results: Path) -> str:
-    """One line per run, then the machine time the grid itself spent (reused runs were paid
-    for by the grid that trained them)."""
-    lines = ["| task | cell | seed | steps | final success (masking: %) | wall | train steps/s | hardware |",
+def run_list(results: Path, split: str = "test") -> str:
+    """One line per run, with its final success on the grid's reported `split`, then the machine
+    time the grid itself spent (reused runs were paid for by the grid that trained them)."""
+    final_key = "final_validation" if split == "validation" else "final"
+    lines = [f"| task | cell | seed | steps | final success, {split} (masking: %) | wall | train steps/s | hardware |",
              "|---|---|---:|---:|---|---:|---:|---|"]
     trained, seconds = 0, 0.0
     for path in sorted((results / "runs").glob("*.json")):
         r = json.loads(path.read_text())
         if "reused_from" not in r:
             trained, seconds = trained + 1, seconds + r["wall_s"]
-        finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in r["final"])
+        finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in r[final_key])
         wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
         lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
                      f"{wall} | {r['train_steps_per_s']} | {r['hardware']} |")
@@ -156,7 +157,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             + (f"\nReward threshold of each cell:\n\n{epsilon_table(results)}" if sweeps_epsilon(results) else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
-            + "Runs:\n\n" + run_list(results)
+            + "Runs:\n\n" + run_list(results, split)
         )
     path.write_text("\n".join(sections))
     return path

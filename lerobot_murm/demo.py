@@ -19,8 +19,8 @@ import numpy as np  # noqa: E402
 
 from lerobot_murm.collection import CollectConfig, collect  # noqa: E402
 from lerobot_murm.env import CAMERA_NAMES, EPISODE_STEPS, TASK_NAMES, MurmEnv  # noqa: E402
-from lerobot_murm.features import goal_key  # noqa: E402
 from lerobot_murm.expert import ScriptedExpert  # noqa: E402
+from lerobot_murm.features import goal_key  # noqa: E402
 
 ROLLOUT_FRAMES = 8
 DEMO_EPISODES = 10

@@ -40,6 +40,15 @@ def latent_goal_key(camera: str) -> str:
     return f"{LATENTS_PREFIX}{goal_key(camera)}"
 
 
+def _cameras(keys, prefix: str) -> list[str]:
+    return [k[len(prefix):] for k in keys if k.startswith(prefix) and not is_goal(k)]
+
+
 def image_cameras(keys) -> list[str]:
     """The cameras whose frames (not goal images) are among the feature `keys`, in order."""
-    return [k[len(IMAGES_PREFIX):] for k in keys if k.startswith(IMAGES_PREFIX) and not is_goal(k)]
+    return _cameras(keys, IMAGES_PREFIX)
+
+
+def latent_cameras(keys) -> list[str]:
+    """The cameras a dataset holds codes of, in order (none for a dataset of images)."""
+    return _cameras(keys, LATENTS_PREFIX)

@@ -9,9 +9,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 from lerobot_murm.env import CAMERA_NAMES, GYM_IDS, TASK_NAMES, MurmEnv
-from lerobot_murm.features import goal_key
 from lerobot_murm.env.tasks import WORKSPACE_HIGH, WORKSPACE_LOW
 from lerobot_murm.expert import ScriptedExpert
+from lerobot_murm.features import goal_key
 
 
 def rollout(env: MurmEnv, seed: int, steps: int, action_seed: int = 0) -> list[dict]:

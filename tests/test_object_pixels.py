@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from lerobot_murm.features import goal_key
 from lerobot_murm.env.objects import OBJECT_COLOURS
+from lerobot_murm.features import goal_key
 from lerobot_murm.vqvae import object_pixels
 from lerobot_murm.vqvae.object_pixels import MIN_VISIBLE_PIXELS, object_metrics
 

@@ -12,6 +12,7 @@ from string import Template
 
 from lerobot_murm.env.cameras import CAMERAS, EndEffectorCamera
 from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, TASK_DESCRIPTIONS
+from lerobot_murm.features import goal_image_key, image_key, latent_goal_key, latent_key
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 
 DEMONSTRATIONS_TEMPLATE = "murm_demonstrations.md"
@@ -35,7 +36,7 @@ def render_card(summary: dict, repo_id: str) -> str:
     rows = []
     for camera in cameras:
         mount = "on the hand" if isinstance(CAMERAS[camera], EndEffectorCamera) else "fixed to the world"
-        rows.append(f"| `observation.images.{camera}`, `observation.images.{camera}_goal` | {camera} camera, {mount} |")
+        rows.append(f"| `{image_key(camera)}`, `{goal_image_key(camera)}` | {camera} camera, {mount} |")
     rate = summary["success_rate"]
     command = (
         f"murm collect --task {recipe['task']} --episodes {summary['episodes']} --seed {recipe['base_seed']} "
@@ -71,7 +72,7 @@ def render_latent_card(description: dict, episodes: int, repo_id: str) -> str:
         episodes=episodes,
         grid=grid,
         camera_rows="\n".join(
-            f"| `observation.latent.{c}`, `observation.latent.{c}_goal` | int16 codes of the {c} frame and goal image |"
+            f"| `{latent_key(c)}`, `{latent_goal_key(c)}` | int16 codes of the {c} frame and goal image |"
             for c in cameras
         ),
         encoder_rows="\n".join(f"| {c} | `{info['encoder_fingerprint']}` |" for c, info in cameras.items()),

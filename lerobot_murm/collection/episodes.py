@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lerobot_murm.env import EPISODE_STEPS, MurmEnv
-from lerobot_murm.features import goal_key
 from lerobot_murm.env.murm_env import SCENE_VERSION
 from lerobot_murm.expert import PAPER_NOISE_STD, ScriptedExpert, noisy_action
+from lerobot_murm.features import goal_key
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 from lerobot_murm.env import GYM_IDS
 from lerobot_murm.env.cameras import CAMERA_NAMES, validate_camera_names
 from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, STATE_DIM, MurmEnv
-from lerobot_murm.features import goal_key
 from lerobot_murm.env.tasks import TASK_NAMES
+from lerobot_murm.features import goal_key
 
 
 @EnvConfig.register_subclass("murm")

@@ -27,7 +27,7 @@ from lerobot_murm import features
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import sparse_reward
 from lerobot_murm.vqvae.latent_cache import LatentCache, build_latent_cache, encoder_fingerprint
-from lerobot_murm.vqvae.latent_dataset import latent_cameras, read_latent_caches
+from lerobot_murm.vqvae.latent_dataset import read_latent_caches
 
 # keys of a transition batch, what `MurmPolicy.forward` takes from `murm train`
 STATE, NEXT_STATE, ACTION, REWARD, DONE = "state", "next_state", "action", "reward", "done"
@@ -120,7 +120,7 @@ def replay_for_dataset(config: MurmConfig, dataset: LeRobotDataset, cache_dir: P
     memory without one).
     """
     encoder_dir = Path(config.encoder_dir or "")
-    if latent_cameras(dataset.meta.features):
+    if features.latent_cameras(dataset.meta.features):
         fingerprints = {c: encoder_fingerprint(encoder_dir / c) for c in config.cameras} if config.encoder_dir else None
         caches = read_latent_caches(dataset, config.cameras, fingerprints)
     else:

@@ -24,18 +24,13 @@ import numpy as np
 from lerobot.datasets.dataset_tools import modify_features
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_murm.features import ENVIRONMENT_STATE, LATENTS_PREFIX, is_goal, latent_goal_key, latent_key
+from lerobot_murm.features import ENVIRONMENT_STATE, latent_goal_key, latent_key
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 from lerobot_murm.vqvae.frames import dataset_fingerprint
 from lerobot_murm.vqvae.latent_cache import LatentCache, encoder_fingerprint
 
 LATENTS_FILE = "meta/murm_latents.json"
 CODE_DTYPE = "int16"
-
-
-def latent_cameras(features: dict) -> list[str]:
-    """The cameras a dataset holds codes of (none for a dataset of images)."""
-    return [k[len(LATENTS_PREFIX):] for k in features if k.startswith(LATENTS_PREFIX) and not is_goal(k)]
 
 
 def write_latent_dataset(

@@ -6,6 +6,7 @@ Not a test. Run it on an otherwise idle machine:
 
     .venv/bin/python benchmarks/bench_iql.py [--device cpu] [--repeats 5] [--widths both]
     .venv/bin/python benchmarks/bench_iql.py --lerobot-train-only [--num-workers 2]
+    .venv/bin/python benchmarks/bench_iql.py --row-costs
 
 Speed does not depend on the latents' content, so the replay holds random codebook
 indices (100,000 frames, 1,000 episodes). A step is what `murm train` does: sample a
@@ -33,10 +34,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from lerobot.configs import FeatureType, PolicyFeature
+from lerobot.datasets.io_utils import hf_transform_to_torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from torch.utils.flop_counter import FlopCounterMode
 
-from lerobot_murm.features import goal_image_key, image_key
+from lerobot_murm.features import LATENTS_PREFIX, goal_image_key, image_key, is_goal
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.precision import resolve_precision
@@ -214,6 +216,35 @@ def lerobot_train_cpu_s(latents: Path, encoder_dir: Path, cameras: list[str], ba
     return after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
 
+def row_costs(episodes: int = 100, rows: int = 2000) -> None:
+    """CPU ms per row of what LeRobot's loader reads from a two-camera latent dataset, with and
+    without its code columns: where `lerobot-train`'s extra time goes."""
+    with tempfile.TemporaryDirectory() as folder:
+        dataset = LeRobotDataset("local/latents", root=write_random_latent_dataset(Path(folder), CAMERAS[:2], episodes))
+        dataset[0]  # loads the table
+        table = dataset.hf_dataset
+        codes = [c for c in table.column_names if c.startswith(LATENTS_PREFIX)]
+        without_codes = table.remove_columns(codes)
+        without_goals = table.remove_columns([c for c in codes if is_goal(c)])
+        for part in (without_codes, without_goals):
+            part.set_transform(hf_transform_to_torch)
+        picked = np.random.default_rng(0).integers(0, len(dataset), rows).tolist()
+
+        def ms_per_row(read) -> float:
+            start = time.process_time()
+            for i in picked:
+                read(i)
+            return 1e3 * (time.process_time() - start) / rows
+
+        print("| what is read | CPU ms per row |\n|---|---:|")
+        for label, read in (("`LeRobotDataset.__getitem__`", dataset.__getitem__),
+                            ("the row through `datasets` with LeRobot's torch transform", table.__getitem__),
+                            ("the same without the code columns", without_codes.__getitem__),
+                            ("the same without the goal-code columns", without_goals.__getitem__),
+                            ("the row as Arrow (no conversion)", table.with_format("arrow").__getitem__)):
+            print(f"| {label} | {ms_per_row(read):.3f} |")
+
+
 def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 150, episodes: int = 1000) -> None:
     """CPU time per update of murm train and of lerobot-train, alternately, on one latent dataset
     (separated Q, two cameras). lerobot-train's per-step time is the difference between a run of
@@ -255,9 +286,12 @@ def main() -> None:
     parser.add_argument("--lerobot-train", action="store_true", help="also compare with lerobot-train")
     parser.add_argument("--lerobot-train-only", action="store_true", help="only compare with lerobot-train")
     parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train's --num_workers")
+    parser.add_argument("--row-costs", action="store_true", help="only the per-row cost of LeRobot's loader")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.row_costs:
+        return row_costs()
     if args.lerobot_train_only:
         return compare_trainers(args.batch_size, args.num_workers, args.repeats)
     device = torch.device(args.device)

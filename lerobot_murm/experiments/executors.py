@@ -18,7 +18,7 @@ from typing import Any
 import torch
 
 from lerobot_murm.collection.collect import CollectionInterrupted
-from lerobot_murm.stopping import TrainingInterrupted
+from lerobot_murm.training_loop import TrainingInterrupted
 
 Job = tuple[Any, ...]
 EXECUTORS = ("local", "ray")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE5, TASKS
-from lerobot_murm.experiments.results import grid_results, write_tables
+from lerobot_murm.experiments.results import grid_results, success_text, write_tables
 
 
 def _rows(table_csv: Path) -> list[dict]:
@@ -54,7 +54,7 @@ def comparison(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -> s
     for (cell, mask_p), per_task in _per_task(name, rows, tasks).items():
         cells = []
         for r, value in per_task:
-            cells.append(f"{float(r['success_mean']):.1f} ± {float(r['success_std']):.1f} (n={r['seeds']})" if r else "-")
+            cells.append(f"{success_text(r)} (n={r['seeds']})" if r else "-")
             if with_paper:
                 cells.append("" if value is None else f"{value:.1f}")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
@@ -149,7 +149,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         split = load_reproduce_config(results / "config.yaml").report_split
         sections.append(
             f"## {results.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds "
-            f"(n = seeds finished), {rows[0]['episodes_per_seed']} {split} episodes per seed and masking "
+            f"(n = seeds finished; a single seed has none), {rows[0]['episodes_per_seed']} {split} episodes per seed and masking "
             f"level{beside}. "
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
@@ -171,7 +171,7 @@ def compact_table(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -
     for cell, mask_p in _row_keys(rows):
         texts = []
         for r, value in per_task[cell, mask_p]:
-            text = "-" if r is None else f"{float(r['success_mean']):.0f} ± {float(r['success_std']):.0f}"
+            text = "-" if r is None else success_text(r, digits=0)
             texts.append(text if value is None else f"{text} ({value:.1f})")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")
     count = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]} to {seeds[-1]}"

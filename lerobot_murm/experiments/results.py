@@ -38,12 +38,19 @@ def aggregate(results: list[dict], split: str = "test") -> list[dict]:
         rows.append({
             "task": task, "cell": cell, "method": first["method"], "cameras": "+".join(first["cameras"]),
             "mask_p": mask_p, "success_mean": round(float(rates.mean()), 2),
-            "success_std": round(float(rates.std(ddof=1)) if len(rates) > 1 else 0.0, 2), "seeds": len(members),
+            "success_std": round(float(rates.std(ddof=1)), 2) if len(rates) > 1 else None, "seeds": len(members),
             "episodes_per_seed": members[0][1]["episodes"], "steps": first["steps"],
             "wall_s_mean": round(float(np.mean([r["wall_s"] for r, _ in members])), 1),
             "train_steps_per_s": round(float(np.mean([r["train_steps_per_s"] for r, _ in members])), 1),
         })
     return rows
+
+
+def success_text(row: dict, digits: int = 1) -> str:
+    """'mean ± std' over seeds; one seed has no sample std (ddof 1), so none is shown. Works
+    on rows as `aggregate` makes them and as read back from table.csv (strings)."""
+    mean = f"{float(row['success_mean']):.{digits}f}"
+    return f"{mean} ± {float(row['success_std']):.{digits}f}" if int(row["seeds"]) > 1 else mean
 
 
 def markdown_table(rows: list[dict]) -> str:
@@ -53,7 +60,7 @@ def markdown_table(rows: list[dict]) -> str:
         cells = []
         for task in tasks:
             match = [r for r in rows if (r["task"], r["cell"], r["mask_p"]) == (task, cell, mask_p)]
-            cells.append(f"{match[0]['success_mean']:.1f} ± {match[0]['success_std']:.1f}" if match else "-")
+            cells.append(success_text(match[0]) if match else "-")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

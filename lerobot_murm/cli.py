@@ -157,7 +157,7 @@ def _reproduce(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.executors import make_executor
     from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
     from lerobot_murm.experiments.reproduce import reproduce
-    from lerobot_murm.stopping import TrainingInterrupted
+    from lerobot_murm.training_loop import TrainingInterrupted
 
     config = load_reproduce_config(args.config, args.overrides)
     executor = make_executor(args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task,
@@ -314,7 +314,7 @@ def _exit_code(error: Exception) -> int | None:
     from lerobot_murm.collection.collect import CollectionInterrupted
     from lerobot_murm.collection.durability import UnrepairableCollection
     from lerobot_murm.collection.hub import HubUnavailable
-    from lerobot_murm.stopping import TrainingInterrupted
+    from lerobot_murm.training_loop import TrainingInterrupted
     from lerobot_murm.vqvae.frames import UnreadableDataset
 
     if isinstance(error, ValueError | DraccusException):

@@ -25,7 +25,6 @@ import torch
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from lerobot.configs import FeatureType
-from tqdm import tqdm
 
 from lerobot_murm.checkpointing import (
     COMPLETE_MARK,
@@ -48,7 +47,7 @@ from lerobot_murm.policy.learning_curve import plot_learning_curve
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
-from lerobot_murm.stopping import StopRequest, TrainingInterrupted
+from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop
 from lerobot_murm.vqvae.frames import dataset_location, open_dataset
 
 LOG_COLUMNS = ["step", "value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight", "steps_per_s"]
@@ -154,7 +153,6 @@ def _resume_state(out: Path, last: Path, device: torch.device) -> dict | None:
 
 
 def train(config: TrainConfig) -> dict:
-    started = time.perf_counter()
     device = resolve_device(config.device)
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -163,6 +161,9 @@ def train(config: TrainConfig) -> dict:
     check_writable(Path(config.cache_dir))
     last = out / "checkpoints" / "last"
     state = _resume_state(out, last, device)  # before the expensive steps: a damaged run fails now
+    # the clock starts here: a run's wall time counts its setup (latents, policy) and evaluations
+    loop = TrainingLoop(config.steps, start=state["step"] if state else 0,
+                        earlier_s=state.get("elapsed_s", 0.0) if state else 0.0, desc="murm train")
     policy_config: MurmConfig = config.policy
     torch.manual_seed(config.seed)
     generator = torch.Generator(device=device).manual_seed(config.seed)
@@ -174,26 +175,21 @@ def train(config: TrainConfig) -> dict:
     policy.fit_latent_statistics(replay.latents)
     optimizer = policy_config.get_optimizer_preset().build(policy.get_optim_params())
 
-    step, earlier_s = 0, 0.0
     if state is not None:
         policy.load_state_dict(state["policy"])
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])
-        step, earlier_s = state["step"], state.get("elapsed_s", 0.0)
         for name in ("log.csv", "eval.csv"):
-            set_aside_rows_after(out / name, step)
-        print(f"resuming from step {step} ({last})")
+            set_aside_rows_after(out / name, loop.step)
+        print(f"resuming from step {loop.step} ({last})")
     else:  # a step-0 checkpoint: a run stopped before its first evaluation resumes too
-        save_checkpoint(last, policy, optimizer, step, generator, 0.0)
+        save_checkpoint(last, policy, optimizer, 0, generator, 0.0)
     draccus.dump(config, (out / "train_config.yaml").open("w"))
-
-    def elapsed() -> float:
-        return earlier_s + time.perf_counter() - started
 
     seeds = evaluation_seeds(config.eval_episodes, config.validation_seed)
     image_size = policy_config.encoder_config(policy_config.cameras[0]).image_size
-    with Evaluator(config.task, policy_config.cameras, image_size, config.eval_envs) as evaluator, StopRequest() as stop:
+    with Evaluator(config.task, policy_config.cameras, image_size, config.eval_envs) as evaluator:
 
         def run_evaluation(at_step: int, eval_seeds: list[int], split: str, authors: bool = False) -> list[dict]:
             levels = [(mask_p, "paper") for mask_p in config.eval_mask_p] + ([(1 / 3, "authors")] if authors else [])
@@ -206,53 +202,52 @@ def train(config: TrainConfig) -> dict:
             return rows
 
         policy.train()
-        progress = tqdm(total=config.steps, initial=step, desc="murm train", unit="step")
         window: list[dict] = []
         window_start = time.perf_counter()
-        while step < config.steps and not stop.requested:
-            loss, info = policy.forward(transition_batch(replay, config.batch_size, generator))
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            policy.update()
-            step += 1
-            window.append(info)
-            progress.update(1)
-            if step % config.log_every == 0 or step == config.steps:
-                row = {k: float(np.mean([w[k] for w in window])) for k in LOG_COLUMNS[1:-1]}
-                row |= {"step": step, "steps_per_s": len(window) / (time.perf_counter() - window_start)}
-                append_rows(out / "log.csv", LOG_COLUMNS, [row])
-                progress.set_postfix(critic=f"{row['critic_loss']:.3f}", q=f"{row['q']:.1f}")
-                window, window_start = [], time.perf_counter()
-            if step % config.eval_every == 0 and step < config.steps:
-                rows = run_evaluation(step, seeds, "validation")
-                append_rows(out / "eval.csv", EVAL_COLUMNS, rows)
-                progress.set_postfix(success=f"{rows[0]['success_rate']:.2f}")
-                save_checkpoint(last, policy, optimizer, step, generator, elapsed())
-                plot_learning_curve(out)
-                window_start = time.perf_counter()
-        progress.close()
-        save_checkpoint(last, policy, optimizer, step, generator, elapsed())
-        if step < config.steps:
-            raise TrainingInterrupted(f"stopped at step {step}; run the same command again to resume")
-        validation_seeds = evaluation_seeds(config.final_eval_episodes, config.validation_seed)
-        final_validation = run_evaluation(step, validation_seeds, "validation", config.eval_authors_masking)
-        test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
-        final = run_evaluation(step, test_seeds, "test", config.eval_authors_masking)
+        with loop:
+            while loop.running():
+                loss, info = policy.forward(transition_batch(replay, config.batch_size, generator))
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                policy.update()
+                loop.advance()
+                window.append(info)
+                if loop.every(config.log_every) or loop.finished:
+                    row = {k: float(np.mean([w[k] for w in window])) for k in LOG_COLUMNS[1:-1]}
+                    row |= {"step": loop.step, "steps_per_s": len(window) / (time.perf_counter() - window_start)}
+                    append_rows(out / "log.csv", LOG_COLUMNS, [row])
+                    loop.show(critic=f"{row['critic_loss']:.3f}", q=f"{row['q']:.1f}")
+                    window, window_start = [], time.perf_counter()
+                if loop.every(config.eval_every) and not loop.finished:
+                    rows = run_evaluation(loop.step, seeds, "validation")
+                    append_rows(out / "eval.csv", EVAL_COLUMNS, rows)
+                    loop.show(success=f"{rows[0]['success_rate']:.2f}")
+                    save_checkpoint(last, policy, optimizer, loop.step, generator, loop.elapsed())
+                    plot_learning_curve(out)
+                    window_start = time.perf_counter()
+            save_checkpoint(last, policy, optimizer, loop.step, generator, loop.elapsed())
+            if loop.interrupted:
+                raise TrainingInterrupted(f"stopped at step {loop.step}; run the same command again to resume")
+            # inside the loop's stop handling: a stop request during the final evaluation waits for it
+            validation_seeds = evaluation_seeds(config.final_eval_episodes, config.validation_seed)
+            final_validation = run_evaluation(loop.step, validation_seeds, "validation", config.eval_authors_masking)
+            test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
+            final = run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking)
     append_rows(out / "eval.csv", EVAL_COLUMNS, final_validation + final)
     plot_learning_curve(out)
     summary = {
         "method": policy_config.method,
         "cameras": policy_config.cameras,
         "task": config.task,
-        "steps": step,
+        "steps": loop.step,
         "seed": config.seed,
         "validation_seeds": [validation_seeds[0], validation_seeds[-1]],
         "eval_seeds": [test_seeds[0], test_seeds[-1]],  # the test range
         "final_validation": final_validation,
         "final": final,
         "checkpoint": str(last / "pretrained_model"),
-        "wall_s": round(elapsed(), 1),
+        "wall_s": round(loop.elapsed(), 1),
     }
     (out / "final_eval.json").write_text(json.dumps(summary, indent=2) + "\n")
     return summary

@@ -9,7 +9,6 @@ the paper's Figure 4).
 from __future__ import annotations
 
 import json
-import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -19,11 +18,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from lerobot_murm.checkpointing import CheckpointError, load_state, save_state  # noqa: E402
 from lerobot_murm.device import resolve_device  # noqa: E402
-from lerobot_murm.stopping import StopRequest, TrainingInterrupted  # noqa: E402
+from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop  # noqa: E402
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig  # noqa: E402
 from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset  # noqa: E402
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE  # noqa: E402
@@ -174,50 +172,41 @@ def train_vqvae(
             print(f"vq-vae {camera}: resuming from step {done} ({state_path})")
         else:
             print(f"vq-vae {camera}: {state_path} is from other settings or data; starting afresh")
-    first, start = done, time.perf_counter()
-
-    def elapsed() -> float:
-        return earlier_s + time.perf_counter() - start
-
-    with StopRequest() as stop:
-        progress = tqdm(total=config.steps, initial=done, desc=f"vq-vae {camera}", unit="step")
-        while done < config.steps and not stop.requested:
+    loop = TrainingLoop(config.steps, start=done, earlier_s=earlier_s, desc=f"vq-vae {camera}")
+    with loop:
+        while loop.running():
             batch = torch.from_numpy(train_images[rng.integers(0, len(train_images), config.batch_size)]).to(device)
             out = model(batch)
             optimizer.zero_grad(set_to_none=True)
             out["loss"].backward()
             optimizer.step()
             schedule.step()
-            if done % LOG_EVERY == 0:
+            if loop.every(LOG_EVERY):
                 perplexity, dead = codebook_usage(out["indices"], config.codebook_size)
                 mse = out["recon_loss"].item()  # on the [-0.5, 0.5] range = MSE on [0, 1]
-                progress.set_postfix(mse=f"{mse:.5f}", psnr=f"{10 * np.log10(1 / mse):.1f}", ppl=f"{perplexity:.0f}", dead=dead)
-            done += 1
-            progress.update()
-            if done % CHECKPOINT_EVERY == 0 and done < config.steps:
-                _save_state(state_path, model, optimizer, schedule, rng, done, elapsed())
-        progress.close()
-    sitting_s = time.perf_counter() - start
-    interrupted = done < config.steps
-    if interrupted:
-        _save_state(state_path, model, optimizer, schedule, rng, done, elapsed())
+                loop.show(mse=f"{mse:.5f}", psnr=f"{10 * np.log10(1 / mse):.1f}", ppl=f"{perplexity:.0f}", dead=dead)
+            loop.advance()
+            if loop.every(CHECKPOINT_EVERY) and not loop.finished:
+                _save_state(state_path, model, optimizer, schedule, rng, loop.step, loop.elapsed())
+    if loop.interrupted:
+        _save_state(state_path, model, optimizer, schedule, rng, loop.step, loop.elapsed())
 
     model.save(out_dir)
     metrics = {
         "camera": camera,
-        "steps": done,
-        "interrupted": interrupted,
-        "train_seconds": elapsed(),
-        "train_images_per_s": (done - first) * config.batch_size / sitting_s,
+        "steps": loop.step,
+        "interrupted": loop.interrupted,
+        "train_seconds": loop.elapsed(),
+        "train_images_per_s": loop.steps_per_s() * config.batch_size,
         "train_images": len(train_images),
         "heldout": evaluate(model, holdout if len(holdout) else train_images[:1024], device),
         "device": str(device),
     }
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     save_reconstructions(model.cpu(), holdout if len(holdout) else train_images, out_dir / "reconstructions.png")
-    if interrupted:
+    if loop.interrupted:
         raise TrainingInterrupted(
-            f"stopped at step {done} of {config.steps} (the encoder so far is saved in {out_dir}); "
+            f"stopped at step {loop.step} of {config.steps} (the encoder so far is saved in {out_dir}); "
             "run the same command again to resume"
         )
     state_path.unlink(missing_ok=True)

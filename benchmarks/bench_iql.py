@@ -21,6 +21,7 @@ and the stock `lerobot-train --policy.type=murm` on it, alternately.
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import resource
 import statistics
@@ -201,9 +202,11 @@ def fast_cpu_s_per_step(policy: MurmPolicy, replay: LatentReplay, batch: int, st
 
 
 def lerobot_train_cpu_s(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
-                        num_workers: int) -> float:
+                        num_workers: int, threads: int | None) -> float:
     """CPU seconds of a whole stock `lerobot-train --policy.type=murm` run on the latent dataset,
-    its data-loader workers included."""
+    its data-loader workers included; `threads`: its torch threads (OMP_NUM_THREADS), as this
+    process's."""
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)} if threads else None
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     with tempfile.TemporaryDirectory() as out:
         subprocess.run([
@@ -211,7 +214,7 @@ def lerobot_train_cpu_s(latents: Path, encoder_dir: Path, cameras: list[str], ba
             f"--policy.cameras=[{','.join(cameras)}]", f"--policy.encoder_dir={encoder_dir}", "--policy.epsilon=[2.0,2.0]",
             "--dataset.repo_id=local/latents", f"--dataset.root={latents}", f"--batch_size={batch}", f"--steps={steps}",
             "--save_checkpoint=false", f"--num_workers={num_workers}", f"--output_dir={out}/run", "--wandb.enable=false",
-        ], capture_output=True, check=True)
+        ], capture_output=True, check=True, env=env)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
@@ -245,7 +248,8 @@ def row_costs(episodes: int = 100, rows: int = 2000) -> None:
             print(f"| {label} | {ms_per_row(read):.3f} |")
 
 
-def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 150, episodes: int = 1000) -> None:
+def compare_trainers(batch: int, num_workers: int, repeats: int, threads: int | None, steps: int = 150,
+                     episodes: int = 1000) -> None:
     """CPU time per update of murm train and of lerobot-train, alternately, on one latent dataset
     (separated Q, two cameras). lerobot-train's per-step time is the difference between a run of
     `steps` + 10 and one of 10 updates, so its start (imports, loading the dataset) cancels out.
@@ -261,13 +265,14 @@ def compare_trainers(batch: int, num_workers: int, repeats: int, steps: int = 15
         fast, slow = [], []
         for _ in range(repeats):
             fast.append(fast_cpu_s_per_step(policy, replay, batch, steps))
-            short = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, 10, num_workers)
-            long = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, steps + 10, num_workers)
+            short = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, 10, num_workers, threads)
+            long = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, steps + 10, num_workers, threads)
             slow.append((long - short) / steps)
             print(f"  CPU ms per update: murm train {1e3 * fast[-1]:.1f}, lerobot-train {1e3 * slow[-1]:.1f} "
                   f"(its start: {short:.1f} s)", flush=True)
     f, s = statistics.median(fast), statistics.median(slow)
-    print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, lerobot-train --num_workers={num_workers}: "
+    print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, torch threads {torch.get_num_threads()}, "
+          f"lerobot-train --num_workers={num_workers}: "
           f"CPU ms per update: murm train {1e3 * f:.1f}, lerobot-train {1e3 * s:.1f}")
     print(f"lerobot-train / murm train: {f / s:.2f}")
 
@@ -293,7 +298,7 @@ def main() -> None:
     if args.row_costs:
         return row_costs()
     if args.lerobot_train_only:
-        return compare_trainers(args.batch_size, args.num_workers, args.repeats)
+        return compare_trainers(args.batch_size, args.num_workers, args.repeats, args.threads, args.steps)
     device = torch.device(args.device)
     cases = [(m, int(n)) for m, n in (c.split(":") for c in args.cases)] if args.cases else CASES
     widths = list(WIDTHS) if args.widths == "both" else [args.widths]

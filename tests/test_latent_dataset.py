@@ -20,6 +20,7 @@ from lerobot_murm.collection.hub import pull_dataset, push_dataset
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.replay import replay_for_dataset
 from lerobot_murm.features import latent_goal_key, latent_key
+from lerobot_murm.vqvae.code_packing import unpack_codes
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_dataset import read_latent_caches
 
@@ -63,10 +64,13 @@ def test_the_latent_dataset_is_a_lerobot_dataset_of_the_encoders_codes_without_i
         cache = build_latent_cache("local/place_in_box", root, encoders / camera, latents.parent / "cache")
         for row in (0, 99, 100, 599):
             item, original = dataset[row], source[row]
-            assert torch.equal(item[latent_key(camera)], torch.from_numpy(cache.indices[row].reshape(-1).astype(np.int16)))
+            size, codes = len(cache.codebook), cache.indices[0].size
+            unpacked = unpack_codes(item[latent_key(camera)].numpy()[None], size, codes)[0]
+            np.testing.assert_array_equal(unpacked, cache.indices[row].reshape(-1))
+            assert size == 32 and len(item[latent_key(camera)]) == -(-codes // 12)  # 5 bits, 12 to an int64
             episode = int(item["episode_index"])
-            goal = cache.goal_indices[episode].reshape(-1).astype(np.int16)
-            assert torch.equal(item[latent_goal_key(camera)], torch.from_numpy(goal))
+            goal = unpack_codes(item[latent_goal_key(camera)].numpy()[None], size, codes)[0]
+            np.testing.assert_array_equal(goal, cache.goal_indices[episode].reshape(-1))
             assert torch.equal(item["action"], original["action"]) and item["index"] == original["index"]
         # the codes read back as the latent cache: the same latents, bit for bit
         (read,) = read_latent_caches(dataset, [camera])
@@ -177,3 +181,16 @@ def test_push_uploads_the_latent_dataset_with_its_card_and_pull_gets_it_back(lat
     for a, b in zip(read_latent_caches(pulled, CAMERAS), read_latent_caches(original, CAMERAS), strict=True):
         np.testing.assert_array_equal(a.latents(), b.latents())
         np.testing.assert_array_equal(a.goal_latents(), b.goal_latents())
+
+
+@pytest.mark.parametrize("codebook_size", [2, 32, 512, 513, 65536])
+def test_packed_codes_unpack_to_the_same_indices_at_every_codebook_size(codebook_size):
+    from lerobot_murm.vqvae.code_packing import pack_codes
+
+    indices = np.random.default_rng(codebook_size).integers(0, codebook_size, (20, 144))
+    indices[0] = codebook_size - 1  # every bit of the widest index set
+    packed = pack_codes(indices, codebook_size)
+    assert packed.dtype == np.int64 and (packed >= 0).all() and packed.shape[1] < 144
+    np.testing.assert_array_equal(unpack_codes(packed, codebook_size, 144), indices)
+    with pytest.raises(ValueError, match=r"must lie in \[0, "):
+        pack_codes(indices + 1, codebook_size)

@@ -72,7 +72,7 @@ def render_latent_card(description: dict, episodes: int, repo_id: str) -> str:
         episodes=episodes,
         grid=grid,
         camera_rows="\n".join(
-            f"| `{latent_key(c)}`, `{latent_goal_key(c)}` | int16 codes of the {c} frame and goal image |"
+            f"| `{latent_key(c)}`, `{latent_goal_key(c)}` | codebook indices of the {c} frame and goal image, packed |"
             for c in cameras
         ),
         encoder_rows="\n".join(f"| {c} | `{info['encoder_fingerprint']}` |" for c, info in cameras.items()),

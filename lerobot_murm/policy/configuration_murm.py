@@ -20,6 +20,7 @@ from lerobot.optim import AdamConfig, OptimizerConfig
 from lerobot_murm.device import resolve_device
 from lerobot_murm.features import ACTION, LATENTS_PREFIX, goal_image_key, image_key, latent_goal_key, latent_key
 from lerobot_murm.policy.precision import PRECISIONS
+from lerobot_murm.vqvae.code_packing import packed_length
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
 
 METHODS = ("single", "concat", "dropout", "separated_q")
@@ -235,13 +236,15 @@ class MurmConfig(PreTrainedConfig):
         """The data has each camera's images and goal images, or their codes (a latent dataset)."""
         if any(k.startswith(LATENTS_PREFIX) for k in self.input_features):
             for camera in self.cameras:
-                grid = self.encoder_config(camera).grid_size
+                encoder = self.encoder_config(camera)
+                length = packed_length(encoder.grid_size**2, encoder.codebook_size)
                 for key in (latent_key(camera), latent_goal_key(camera)):
                     if key not in self.input_features:
                         raise ValueError(f"the policy needs {key}; the latent dataset has no codes of camera {camera!r}")
-                    if tuple(self.input_features[key].shape) != (grid * grid,):
+                    if tuple(self.input_features[key].shape) != (length,):
                         raise ValueError(f"{key} has shape {tuple(self.input_features[key].shape)}; the {camera} "
-                                         f"encoder makes a {grid}x{grid} grid of codes")
+                                         f"encoder's {encoder.grid_size}x{encoder.grid_size} grid of codes packs "
+                                         f"into ({length},)")
             return
         visual = {k: ft for k, ft in self.input_features.items() if ft.type is FeatureType.VISUAL}
         for camera in self.cameras:

@@ -4,11 +4,11 @@ A latent dataset is an ordinary LeRobotDataset (v3): the source's actions, rewar
 state and episodes (not the privileged object/goal state, which no policy may see), and per
 chosen camera `observation.latent.<camera>` and
 `observation.latent.<camera>_goal`, the codebook indices of the frame and of the episode's
-goal image (int16, grid x grid row-major), with no image streams. Indices rather than the
-720 floats they stand for: a latent is a lookup in the encoder's codebook (bit-identical
-to encoding the image), the files are 10x smaller, and LeRobot's data loader, which turns
-every row into Python lists and tensors, reads an index row about twice as fast
-(BENCHMARKS.md). The codebooks, the encoders' fingerprints and the source dataset are in
+goal image (grid x grid row-major), packed several to an int64 (`code_packing`), with no
+image streams. Indices rather than the 720 floats they stand for: a latent is a lookup in
+the encoder's codebook (bit-identical to encoding the image), and the files are 10x
+smaller; packed, because LeRobot's data loader turns every number of a row into Python
+objects one row at a time, and fewer numbers read faster (BENCHMARKS.md). The codebooks, the encoders' fingerprints and the source dataset are in
 `meta/murm_latents.json`; a policy refuses codes made by other encoders than its own.
 
 It is written with LeRobot's own `dataset_tools.modify_features` (one pass: add the code
@@ -25,12 +25,12 @@ from lerobot.datasets.dataset_tools import modify_features
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.features import ENVIRONMENT_STATE, latent_goal_key, latent_key
+from lerobot_murm.vqvae.code_packing import code_bits, codes_per_number, pack_codes, unpack_codes
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 from lerobot_murm.vqvae.frames import dataset_fingerprint
 from lerobot_murm.vqvae.latent_cache import LatentCache, encoder_fingerprint
 
 LATENTS_FILE = "meta/murm_latents.json"
-CODE_DTYPE = "int16"
 
 
 def write_latent_dataset(
@@ -45,11 +45,11 @@ def write_latent_dataset(
         if not (np.array_equal(cache.episode_index, episode_index)
                 and np.array_equal(cache.frame_index, table["frame_index"].to_numpy())):
             raise ValueError(f"the {cache.camera} latent cache does not match the rows of {dataset.root}")
-    codes = {"dtype": CODE_DTYPE, "shape": [caches[0].indices[0].size], "names": None}
     added = {}
     for cache in caches:
-        frames = cache.indices.reshape(len(cache.indices), -1).astype(CODE_DTYPE)
-        goals = cache.goal_indices.reshape(len(cache.goal_indices), -1).astype(CODE_DTYPE)[episode_index]
+        size = len(cache.codebook)
+        frames, goals = pack_codes(cache.indices, size), pack_codes(cache.goal_indices, size)[episode_index]
+        codes = {"dtype": "int64", "shape": [frames.shape[1]], "names": None}
         added[latent_key(cache.camera)] = (frames, codes)
         added[latent_goal_key(cache.camera)] = (goals, codes)
     # every column costs LeRobot's loader time per row: keep only what a policy may use
@@ -65,6 +65,8 @@ def write_latent_dataset(
                 "encoder": json.loads((Path(encoder_dir) / "config.json").read_text()),
                 "encoder_fingerprint": encoder_fingerprint(Path(encoder_dir)),
                 "codebook": cache.codebook.tolist(),
+                "code_bits": code_bits(len(cache.codebook)),  # `code_packing`: indices per int64 and their width
+                "codes_per_number": codes_per_number(len(cache.codebook)),
             }
             for cache, encoder_dir in zip(caches, encoder_dirs, strict=True)
         },
@@ -95,19 +97,18 @@ def read_latent_caches(dataset: LeRobotDataset, cameras: list[str],
         expected = (encoder_fingerprints or {}).get(camera, info["encoder_fingerprint"])
         if expected != info["encoder_fingerprint"]:
             raise ValueError(f"the {camera} codes in {dataset.root} come from another encoder than the policy's")
-        grid = VQVAEConfig(**info["encoder"]).grid_size
-        indices = _codes(table, latent_key(camera), grid)
+        grid, codebook = VQVAEConfig(**info["encoder"]).grid_size, np.asarray(info["codebook"], np.float32)
         caches.append(LatentCache(
             camera=camera,
-            indices=indices,
-            goal_indices=_codes(table, latent_goal_key(camera), grid)[np.flatnonzero(frame_index == 0)],
-            codebook=np.asarray(info["codebook"], np.float32),
+            indices=_codes(table, latent_key(camera), grid, len(codebook)),
+            goal_indices=_codes(table, latent_goal_key(camera), grid, len(codebook))[np.flatnonzero(frame_index == 0)],
+            codebook=codebook,
             episode_index=episode_index,
             frame_index=frame_index,
         ))
     return caches
 
 
-def _codes(table, column: str, grid: int) -> np.ndarray:
-    values = table[column].combine_chunks().flatten().to_numpy()
-    return values.reshape(-1, grid, grid).astype(np.uint16)
+def _codes(table, column: str, grid: int, codebook_size: int) -> np.ndarray:
+    packed = table[column].combine_chunks().flatten().to_numpy().reshape(len(table), -1)
+    return unpack_codes(packed, codebook_size, grid * grid).reshape(-1, grid, grid)

@@ -46,6 +46,7 @@ from lerobot_murm.policy.precision import resolve_precision
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
 from lerobot_murm.policy.train import build_policy, transition_batch
 from lerobot_murm.vqvae import VQVAEConfig
+from lerobot_murm.vqvae.code_packing import unpack_codes
 from lerobot_murm.vqvae.latent_cache import LatentCache
 from lerobot_murm.vqvae.latent_dataset import write_latent_dataset
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
@@ -220,8 +221,9 @@ def lerobot_train_cpu_s(latents: Path, encoder_dir: Path, cameras: list[str], ba
 
 
 def row_costs(episodes: int = 100, rows: int = 2000) -> None:
-    """CPU ms per row of what LeRobot's loader reads from a two-camera latent dataset, with and
-    without its code columns: where `lerobot-train`'s extra time goes."""
+    """CPU ms per row of what LeRobot's loader reads from a two-camera latent dataset: its codes
+    packed (the layout), unpacked to 144 int16 an image (the layout before), without the goal
+    codes and without any: where `lerobot-train`'s extra time goes."""
     with tempfile.TemporaryDirectory() as folder:
         dataset = LeRobotDataset("local/latents", root=write_random_latent_dataset(Path(folder), CAMERAS[:2], episodes))
         dataset[0]  # loads the table
@@ -229,7 +231,12 @@ def row_costs(episodes: int = 100, rows: int = 2000) -> None:
         codes = [c for c in table.column_names if c.startswith(LATENTS_PREFIX)]
         without_codes = table.remove_columns(codes)
         without_goals = table.remove_columns([c for c in codes if is_goal(c)])
-        for part in (without_codes, without_goals):
+        codebook_size = VQVAEConfig().codebook_size
+        unpacked = without_codes
+        for column in codes:
+            packed = np.stack(table.with_format("numpy")[column])
+            unpacked = unpacked.add_column(column, list(unpack_codes(packed, codebook_size, 144).astype(np.int16)))
+        for part in (without_codes, without_goals, unpacked):
             part.set_transform(hf_transform_to_torch)
         picked = np.random.default_rng(0).integers(0, len(dataset), rows).tolist()
 
@@ -241,9 +248,11 @@ def row_costs(episodes: int = 100, rows: int = 2000) -> None:
 
         print("| what is read | CPU ms per row |\n|---|---:|")
         for label, read in (("`LeRobotDataset.__getitem__`", dataset.__getitem__),
-                            ("the row through `datasets` with LeRobot's torch transform", table.__getitem__),
-                            ("the same without the code columns", without_codes.__getitem__),
-                            ("the same without the goal-code columns", without_goals.__getitem__),
+                            ("the row through `datasets` with LeRobot's torch transform, codes packed",
+                             table.__getitem__),
+                            ("the same, codes as 144 int16 an image (the layout before)", unpacked.__getitem__),
+                            ("the same, packed, without the goal-code columns", without_goals.__getitem__),
+                            ("the same without any code column", without_codes.__getitem__),
                             ("the row as Arrow (no conversion)", table.with_format("arrow").__getitem__)):
             print(f"| {label} | {ms_per_row(read):.3f} |")
 

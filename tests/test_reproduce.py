@@ -194,7 +194,7 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
 
     report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
     table, rest = report.split("![learning curves]")
-    assert "| single-top | 0% |" in table and "50.0 ± 0.0 (n=1)" in table
+    assert "| single-top | 0% |" in table and "50.0 (n=1)" in table  # one seed: no sample std
     assert "place_in_random_box" not in table  # a task the grid does not run gets no column
     assert rest.index("Top beats nothing here.") < rest.index("Runs:")
     assert "6.0 min (the run of table4/pick_up__single-global__seed0)" in rest
@@ -310,7 +310,7 @@ def test_the_table2_report_says_on_which_scale_each_epsilon_is(tmp_path):
                "epsilon_paper_scale": [paper], "epsilon_quantile": [quantile]}
         (grid / "runs" / f"place_in_box__{cell}__seed0.json").write_text(json.dumps(run))
     report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
-    assert "| single-global-paper-eps0.1 | 0% | 50.0 ± 0.0 (n=1) | 29.0 |" in report
+    assert "| single-global-paper-eps0.1 | 0% | 50.0 (n=1) | 29.0 |" in report
     assert "| place_in_box | single-global-paper-eps0.1 | 0.23 | 0.1 | 0.004 |" in report
     assert "| place_in_box | single-global-paper-eps2 | 4.6 | 2 | 0.31 |" in report
     assert "The paper's epsilons are on its own encoders' scale" in report

@@ -208,8 +208,8 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
                       "<!-- /results:table9 -->\nend\n")
     assert update_readme(tmp_path / "results", readme) == ["table3"]
     text = readme.read_text()
-    assert "STALE TABLE" not in text and "| single-top | 0% | - (18.8) | 50 ± 0 (0.2) |" in text
-    assert "| single-global | 0% | - (34.5) | 50 ± 0 (15.7) |" in text
+    assert "STALE TABLE" not in text and "| single-top | 0% | - (18.8) | 50 (0.2) |" in text
+    assert "| single-global | 0% | - (34.5) | 50 (15.7) |" in text
     assert "kept" in text and text.endswith("end\n")
 
 

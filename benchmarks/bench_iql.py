@@ -231,11 +231,12 @@ def row_costs(episodes: int = 100, rows: int = 2000) -> None:
         codes = [c for c in table.column_names if c.startswith(LATENTS_PREFIX)]
         without_codes = table.remove_columns(codes)
         without_goals = table.remove_columns([c for c in codes if is_goal(c)])
-        codebook_size = VQVAEConfig().codebook_size
+        encoder = VQVAEConfig()
         unpacked = without_codes
         for column in codes:
             packed = np.stack(table.with_format("numpy")[column])
-            unpacked = unpacked.add_column(column, list(unpack_codes(packed, codebook_size, 144).astype(np.int16)))
+            indices = unpack_codes(packed, encoder.codebook_size, encoder.grid_size**2)
+            unpacked = unpacked.add_column(column, list(indices.astype(np.int16)))
         for part in (without_codes, without_goals, unpacked):
             part.set_transform(hf_transform_to_torch)
         picked = np.random.default_rng(0).integers(0, len(dataset), rows).tolist()

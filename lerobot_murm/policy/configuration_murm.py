@@ -18,7 +18,7 @@ from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.optim import AdamConfig, OptimizerConfig
 
 from lerobot_murm.device import resolve_device
-from lerobot_murm.features import ACTION, LATENTS_PREFIX, goal_image_key, image_key, latent_goal_key, latent_key
+from lerobot_murm.features import ACTION, goal_image_key, image_key, latent_cameras, latent_goal_key, latent_key
 from lerobot_murm.policy.precision import PRECISIONS
 from lerobot_murm.vqvae.code_packing import packed_length
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
@@ -234,7 +234,7 @@ class MurmConfig(PreTrainedConfig):
 
     def validate_features(self) -> None:
         """The data has each camera's images and goal images, or their codes (a latent dataset)."""
-        if any(k.startswith(LATENTS_PREFIX) for k in self.input_features):
+        if latent_cameras(self.input_features):
             for camera in self.cameras:
                 encoder = self.encoder_config(camera)
                 length = packed_length(encoder.grid_size**2, encoder.codebook_size)

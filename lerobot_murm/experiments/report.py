@@ -1,7 +1,7 @@
 """REPORT.md: each finished grid's table beside the paper's, with configuration, hardware
 and wall time of every run. Built from `results/*/` alone, so it can be regenerated any
 time (`murm report`), which also refreshes the README's results tables (between
-`<!-- results:NAME -->` and `<!-- /results:NAME -->`)."""
+`<!-- results:NAME -->` and `<!-- /results:NAME -->`) and its claims list (`<!-- claims -->`)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import json
 import re
 from pathlib import Path
 
+from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
-from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE5, TASKS
+from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE5, TASKS
 from lerobot_murm.experiments.results import grid_results, success_text, write_tables
 
 
@@ -61,18 +62,21 @@ def comparison(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -> s
     return "\n".join(lines) + "\n"
 
 
-def time_table(rows: list[dict], paper: dict[str, float]) -> str:
-    """Table 5: each cell's time per update relative to the task's first cell (the
-    single-view baseline), from the runs' median training steps/s (evaluation excluded)."""
+def time_table(rows: list[dict], paper: dict[str, float], base_cell: str | None = None) -> str:
+    """Table 5 (and Table 1's time column): each cell's time per update relative to
+    `base_cell` (default: the task's first cell, the single-view baseline), from the runs'
+    median training steps/s (evaluation excluded)."""
     unmasked = [r for r in rows if float(r["mask_p"]) == 0.0]
     base = {}
     for r in unmasked:
-        base.setdefault(r["task"], float(r["train_steps_per_s"]))
-    lines = ["| task | cell | training steps/s | time per update vs. first cell | paper |", "|---|---|---:|---:|---:|"]
+        if base_cell is None or r["cell"] == base_cell:
+            base.setdefault(r["task"], float(r["train_steps_per_s"]))
+    against = base_cell or "first cell"
+    lines = [f"| task | cell | training steps/s | time per update vs. {against} | paper |", "|---|---|---:|---:|---:|"]
     for r in unmasked:
-        ratio = base[r["task"]] / float(r["train_steps_per_s"])
+        ratio = f"{base[r['task']] / float(r['train_steps_per_s']):.2f}" if r["task"] in base else "-"
         value = paper.get(r["cell"])
-        lines.append(f"| {r['task']} | {r['cell']} | {float(r['train_steps_per_s']):.1f} | {ratio:.2f} | "
+        lines.append(f"| {r['task']} | {r['cell']} | {float(r['train_steps_per_s']):.1f} | {ratio} | "
                      f"{'' if value is None else f'{value:.2f}'} |")
     return "\n".join(lines) + "\n"
 
@@ -141,6 +145,8 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
     sections = [preface] if preface else []
     for results in sorted(results_dir.iterdir()):
         refresh_tables(results)
+    sections.append(f"## Which of the paper's claims hold here\n\n{claims_table(results_dir)}")
+    for results in sorted(results_dir.iterdir()):
         if not (results / "table.csv").exists():
             continue
         rows = _rows(results / "table.csv")
@@ -154,6 +160,8 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
             + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
+            + (f"\nTraining time (Table 1's time column):\n\n{time_table(rows, TABLE1_TIME, 'single-global-128')}"
+               if results.name == "table1" else "")
             + (f"\nReward threshold of each cell:\n\n{epsilon_table(results)}" if sweeps_epsilon(results) else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
@@ -181,8 +189,8 @@ def compact_table(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -
 
 
 def update_readme(results_dir: Path, readme: Path) -> list[str]:
-    """Refill each `<!-- results:NAME -->` block of the README from results/NAME/table.csv;
-    returns the names refilled."""
+    """Refill each `<!-- results:NAME -->` block of the README from results/NAME/table.csv,
+    and the `<!-- claims -->` block with the claims' verdicts; returns the blocks refilled."""
     text, filled = readme.read_text(), []
 
     def refill(match: re.Match) -> str:
@@ -195,5 +203,10 @@ def update_readme(results_dir: Path, readme: Path) -> list[str]:
         return f"<!-- results:{name} -->\n{table}<!-- /results:{name} -->"
 
     text = re.sub(r"<!-- results:(\w+) -->.*?<!-- /results:\1 -->", refill, text, flags=re.S)
+    if "<!-- claims -->" in text:
+        filled.append("claims")
+        text = re.sub(r"<!-- claims -->.*?<!-- /claims -->",
+                      lambda _: f"<!-- claims -->\n{claims_table(Path(results_dir), rules=False)}<!-- /claims -->",
+                      text, flags=re.S)
     readme.write_text(text)
     return filled

@@ -1,0 +1,310 @@
+"""Which of the paper's claims hold here: each claim in the paper's words, the rule that
+decides it and its verdict from our tables, with the numbers behind it.
+
+The rules were written before the paper-setting tables ran and read only the reported
+(test-episode) tables, `results/<grid>/table.csv`, so `murm report` recomputes the verdicts
+whenever a grid finishes. The words every rule uses are DEFINITIONS below.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from lerobot_murm.experiments.paper import TABLE5, TASKS
+
+HOLDS, PARTLY, FAILS, PENDING = "holds", "partly", "does not hold", "not run yet"
+
+DEFINITIONS = """\
+- A cell is *clearly below* another when its mean is lower by more than two standard errors
+  of the difference (standard error of a cell: sample std / sqrt(seeds); for one seed, the
+  binomial standard error of its episodes). With 3 seeds at a 7-point seed spread that is
+  about 11 points: smaller differences are not called.
+- A claim is judged per task (or masking level) and then overall: *holds* where it holds on
+  every one, *does not hold* where it fails on every one, else *partly*. Tasks whose cells
+  have not run yet are left out (*not run yet* when none has).
+"""
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One row of a grid's table: success (%) over seeds."""
+
+    mean: float
+    std: float | None
+    seeds: int
+    episodes: int
+    steps_per_s: float
+
+    @property
+    def standard_error(self) -> float:
+        if self.seeds > 1 and self.std is not None:
+            return self.std / math.sqrt(self.seeds)
+        p = min(max(self.mean / 100, 0.0), 1.0)
+        return 100 * math.sqrt(max(p * (1 - p), 1e-4) / self.episodes)
+
+    def text(self) -> str:
+        return f"{self.mean:.0f} ± {self.std:.0f}" if self.seeds > 1 and self.std is not None else f"{self.mean:.0f}"
+
+
+class Tables:
+    """The committed tables of every grid, by (grid, task, cell, masking)."""
+
+    def __init__(self, results_dir: Path):
+        self.cells: dict[tuple[str, str, str, float], Cell] = {}
+        for table in sorted(Path(results_dir).glob("*/table.csv")):
+            with table.open() as f:
+                for row in csv.DictReader(f):
+                    std = row["success_std"]
+                    self.cells[(table.parent.name, row["task"], row["cell"], round(float(row["mask_p"]), 4))] = Cell(
+                        float(row["success_mean"]), float(std) if std not in ("", "None") else None,
+                        int(row["seeds"]), int(row["episodes_per_seed"]), float(row["train_steps_per_s"]))
+
+    def get(self, grid: str, task: str, cell: str, mask_p: float = 0.0) -> Cell | None:
+        return self.cells.get((grid, task, cell, round(mask_p, 4)))
+
+    def row(self, grid: str, task: str, cells: list[str], mask_p: float = 0.0) -> dict[str, Cell] | None:
+        """These cells of one task, or None unless every one has run."""
+        found = {name: self.get(grid, task, name, mask_p) for name in cells}
+        return None if any(c is None for c in found.values()) else found
+
+
+def clearly_below(cell: Cell, other: Cell) -> bool:
+    return other.mean - cell.mean > 2 * math.hypot(cell.standard_error, other.standard_error)
+
+
+def best_verdict(cells: dict[str, Cell], name: str) -> str:
+    """holds: `name` has the highest mean; partly: lower, but not clearly below the best;
+    does not hold: clearly below the best."""
+    best = max(cells, key=lambda k: cells[k].mean)
+    if best == name:
+        return HOLDS
+    return FAILS if clearly_below(cells[name], cells[best]) else PARTLY
+
+
+def combine(verdicts: list[str]) -> str:
+    if not verdicts:
+        return PENDING
+    if all(v == HOLDS for v in verdicts):
+        return HOLDS
+    return FAILS if all(v == FAILS for v in verdicts) else PARTLY
+
+
+def _numbers(cells: dict[str, Cell], short: dict[str, str] | None = None) -> str:
+    return ", ".join(f"{(short or {}).get(name, name)} {cell.text()}" for name, cell in cells.items())
+
+
+@dataclass(frozen=True)
+class Judged:
+    """A claim on each condition (task or masking level) whose cells have run."""
+
+    verdicts: list[str]
+    evidence: list[str]
+    conditions: int  # how many there are in all
+
+
+@dataclass(frozen=True)
+class Claim:
+    source: str  # where in the paper
+    text: str  # the claim, in the paper's words where it has them
+    rule: str  # how our tables decide it
+    judge: Callable[[Tables], Judged]
+
+
+@dataclass(frozen=True)
+class Verdict:
+    claim: Claim
+    verdict: str
+    evidence: str
+
+
+def per_task(grid: str, cells: list[str], mask_p: float, decide: Callable[[dict[str, Cell]], str],
+             short: dict[str, str] | None = None, tasks: tuple[str, ...] = TASKS):
+    """A judge that applies `decide` to these cells on every task where all of them have run."""
+
+    def judge(tables: Tables) -> Judged:
+        verdicts, evidence = [], []
+        for task in tasks:
+            if (row := tables.row(grid, task, cells, mask_p)) is not None:
+                verdict = decide(row)
+                verdicts.append(verdict)
+                evidence.append(f"{task}: {_numbers(row, short)} ({verdict})")
+        return Judged(verdicts, evidence, len(tasks))
+
+    return judge
+
+
+def per_masking(grid: str, cells: list[str], decide: Callable[[dict[str, Cell]], str],
+                short: dict[str, str] | None = None, levels: tuple[float, ...] = (0.0, 0.5)):
+    """A judge for task-1 grids: `decide` at each masking level where all the cells have run."""
+
+    def judge(tables: Tables) -> Judged:
+        verdicts, evidence = [], []
+        for mask_p in levels:
+            if (row := tables.row(grid, "place_in_box", cells, mask_p)) is not None:
+                verdict = decide(row)
+                verdicts.append(verdict)
+                evidence.append(f"{mask_p:.0%} masking: {_numbers(row, short)} ({verdict})")
+        return Judged(verdicts, evidence, len(levels))
+
+    return judge
+
+
+SINGLE = "single-global"
+CONCAT = "concat-global+adjacent"
+DROPOUT = "dropout-global+adjacent"
+SEPARATED = "separated_q-global+adjacent"
+VIEWS = ["global", "adjacent", "top", "side", "active"]
+
+
+def _top_two(row: dict[str, Cell]) -> str:
+    ranked = sorted(row, key=lambda k: row[k].mean, reverse=True)[:2]
+    hits = len({"single-global", "single-adjacent"} & set(ranked))
+    return {2: HOLDS, 1: PARTLY, 0: FAILS}[hits]
+
+
+def fails_under_masking(row: dict[str, Cell]) -> str:
+    """holds: under 50 % masking below a third of the unmasked single view's success."""
+    return HOLDS if row["masked"].mean < row["single"].mean / 3 else FAILS
+
+
+def stays_successful(row: dict[str, Cell]) -> str:
+    """holds: under 50 % masking at least half the unmasked single view's success."""
+    return HOLDS if row["masked"].mean >= row["single"].mean / 2 else FAILS
+
+
+def masked_vs_single(masked: str, decide: Callable[[dict[str, Cell]], str]):
+    """A judge of a Table 4 cell under 50 % masking against the unmasked single view, per task."""
+
+    def judge(tables: Tables) -> Judged:
+        verdicts, evidence = [], []
+        for task in TASKS:
+            single, cell = tables.get("table4", task, SINGLE, 0.0), tables.get("table4", task, masked, 0.5)
+            if single is None or cell is None:
+                continue
+            verdict = decide({"single": single, "masked": cell})
+            verdicts.append(verdict)
+            evidence.append(f"{task}: {cell.text()} at 50 % vs single view unmasked {single.text()} ({verdict})")
+        return Judged(verdicts, evidence, len(TASKS))
+
+    return judge
+
+
+def _time_costs(tables: Tables) -> Judged:
+    """Table 5: time per update relative to the single view, within 0.25 of the paper's."""
+    names = list(TABLE5)
+    cells = [tables.get("table5", "place_in_box", name) for name in names]
+    if any(c is None for c in cells):
+        return Judged([], [], 1)
+    ratio = {name: cells[0].steps_per_s / c.steps_per_s for name, c in zip(names, cells, strict=True)}
+    close = all(abs(ratio[n] - TABLE5[n]) <= 0.25 for n in names)
+    ordered = (ratio["dropout-global+adjacent"] < ratio["separated_q-global+adjacent"]
+               and ratio["dropout-global+adjacent+top"] > ratio["dropout-global+adjacent"]
+               and ratio["separated_q-global+adjacent+top"] > ratio["separated_q-global+adjacent"])
+    verdict = HOLDS if close else PARTLY if ordered else FAILS
+    text = ", ".join(f"{n} {ratio[n]:.2f} (paper {TABLE5[n]:.2f})" for n in names[1:])
+    return Judged([verdict], [f"place_in_box: {text} ({verdict})"], 1)
+
+
+def _gain_follows_the_added_view(tables: Tables) -> Judged:
+    """Table 6 against Table 3 (task 1): the added views ranked as their own single views."""
+    views = ["top", "side", "active"]
+    singles = tables.row("table3", "place_in_box", [f"single-{v}" for v in views])
+    verdicts, evidence = [], []
+    for mask_p in (0.0, 0.5):
+        pairs = tables.row("table6", "place_in_box", [f"separated_q-global+{v}" for v in views], mask_p)
+        if singles is None or pairs is None:
+            continue
+        alone = sorted(views, key=lambda v: singles[f"single-{v}"].mean, reverse=True)
+        added = sorted(views, key=lambda v: pairs[f"separated_q-global+{v}"].mean, reverse=True)
+        verdict = HOLDS if alone == added else PARTLY if alone[0] == added[0] else FAILS
+        verdicts.append(verdict)
+        with_global = ", ".join(f"{v} {pairs[f'separated_q-global+{v}'].text()}" for v in views)
+        alone_text = ", ".join(f"{v} {singles[f'single-{v}'].text()}" for v in views)
+        evidence.append(f"{mask_p:.0%} masking: global + {with_global}; alone {alone_text} ({verdict})")
+    return Judged(verdicts, evidence, 2)
+
+
+def _more_demonstrations(row: dict[str, Cell]) -> str:
+    rising = row["demos250"].mean < row["demos500"].mean < row["demos1000"].mean
+    no_gain_beyond = not any(clearly_below(row["demos1000"], row[k]) for k in ("demos2000", "demos3000"))
+    return HOLDS if rising and no_gain_beyond else PARTLY if rising or no_gain_beyond else FAILS
+
+
+CLAIMS = [
+    Claim("Table 1", "128 units per layer give the highest success of the widths 32-256",
+          "the 128-unit cell has the highest mean (partly: lower but not clearly below the best)",
+          per_masking("table1", [f"single-global-{w}" for w in (32, 64, 128, 256)],
+                      lambda row: best_verdict(row, "single-global-128"), levels=(0.0,))),
+    Claim("Table 2", "epsilon 2.0 gives the highest success of the five thresholds",
+          "the paper-epsilon-2 cell (mapped to our scale) has the highest mean (partly: not clearly below the best)",
+          per_masking("table2", [f"single-global-paper-eps{e}" for e in ("0.1", "1", "2", "3", "5")],
+                      lambda row: best_verdict(row, "single-global-paper-eps2"), levels=(0.0,))),
+    Claim("Table 3", "global and adjacent are the best single views on every task",
+          "per task, global and adjacent are the two highest means (partly: one of them is)",
+          per_task("table3", [f"single-{v}" for v in VIEWS], 0.0, _top_two, {f"single-{v}": v for v in VIEWS})),
+    Claim("Table 4", "a single view fails under 50 % masking (paper 0 / 3 / 0 %)",
+          "per task, below a third of the unmasked single view's success",
+          masked_vs_single(SINGLE, fails_under_masking)),
+    Claim("Table 4", "concatenation fails under 50 % masking (paper 4 / 12 / 4 %)",
+          "per task, below a third of the unmasked single view's success",
+          masked_vs_single(CONCAT, fails_under_masking)),
+    Claim("Table 4", "MURM dropout stays successful under 50 % masking (paper 36 / 40 / 10 %)",
+          "per task, at least half the unmasked single view's success",
+          masked_vs_single(DROPOUT, stays_successful)),
+    Claim("Table 4", "MURM separated Q stays successful under 50 % masking (paper 38 / 44 / 15 %)",
+          "per task, at least half the unmasked single view's success",
+          masked_vs_single(SEPARATED, stays_successful)),
+    Claim("Table 4", "separated Q is the best method under masking",
+          "per task at 50 % masking, the paper's separated Q has the highest mean of single, concat, dropout, "
+          "separated Q (partly: not clearly below the best)",
+          per_task("table4", [SINGLE, CONCAT, DROPOUT, SEPARATED], 0.5, lambda row: best_verdict(row, SEPARATED),
+                   {SINGLE: "single", CONCAT: "concat", DROPOUT: "dropout", SEPARATED: "separated Q"})),
+    Claim("Table 5", "dropout trains in about the single view's time (1.05x), separated Q in about 1.5x, "
+          "and each added view costs about 0.5x more",
+          "every ratio within 0.25 of the paper's (partly: the same order: dropout < separated Q, "
+          "three cameras > two)", _time_costs),
+    Claim("Table 6", "the gain from adding a view follows that view's own single-view success",
+          "global + X (separated Q) ranks top / side / active as their single views rank in Table 3 "
+          "(partly: the same best view), at 0 and 50 % masking", _gain_follows_the_added_view),
+    Claim("Table 7", "more demonstrations help up to about 1000",
+          "250 < 500 < 1000 in mean, and neither 2000 nor 3000 clearly above 1000 (partly: one of the two), "
+          "at 0 and 50 % masking",
+          per_masking("table7", [f"demos{n}" for n in (250, 500, 1000, 2000, 3000)], _more_demonstrations)),
+    Claim("Table 7", "a fully noisy dataset is best",
+          "the 100 %-noisy cell (1000 demonstrations) has the highest mean of 0 / 25 / 50 / 100 % noisy "
+          "(partly: not clearly below the best), at 0 and 50 % masking",
+          per_masking("table7", ["noisy0", "noisy25", "noisy50", "demos1000"],
+                      lambda row: best_verdict(row, "demos1000"), {"demos1000": "noisy100"})),
+]
+
+
+def judge_claims(results_dir: Path) -> list[Verdict]:
+    tables = Tables(results_dir)
+    verdicts = []
+    for claim in CLAIMS:
+        judged = claim.judge(tables)
+        verdict = combine(judged.verdicts)
+        if 0 < len(judged.verdicts) < judged.conditions:
+            verdict += f" ({len(judged.verdicts)} of {judged.conditions} run)"
+        verdicts.append(Verdict(claim, verdict, "; ".join(judged.evidence) or "-"))
+    return verdicts
+
+
+def claims_table(results_dir: Path, rules: bool = True) -> str:
+    """Markdown: one row per claim with its verdict and our numbers (test episodes, success %
+    mean ± sample std over seeds), then the rules."""
+    verdicts = judge_claims(results_dir)
+    lines = ["| | the paper's claim | verdict here | our numbers |", "|---|---|---|---|"]
+    for v in verdicts:
+        lines.append(f"| {v.claim.source} | {v.claim.text} | **{v.verdict}** | {v.evidence} |")
+    text = "\n".join(lines) + "\n"
+    if rules:
+        text += ("\nHow each verdict is decided (fixed before the tables ran; "
+                 "`lerobot_murm/experiments/claims.py`):\n\n"
+                 + "\n".join(f"- {v.claim.source}, {v.claim.text}: {v.claim.rule}." for v in verdicts)
+                 + "\n" + DEFINITIONS)
+    return text

@@ -102,3 +102,4 @@ def test_the_report_and_readme_show_the_claims_with_their_numbers(tmp_path):
     text = readme.read_text()
     assert "stale" not in text and "**holds**" in text and text.endswith("<!-- /claims -->\nrest\n")
     assert "How each verdict is decided" in claims_table(tmp_path / "results")
+

@@ -327,3 +327,19 @@ def test_an_encoder_whose_frames_all_encode_alike_has_no_paper_scale(tmp_path):
     assert epsilon_scales([0.0], ["global"], tmp_path)["epsilon_paper_scale"] == [None]
     with pytest.raises(ValueError, match="no scale to map the paper's epsilon to"):
         cell_epsilon(CellSpec(method="single", cameras=["global"], paper_epsilon=[1.0]), tmp_path)
+
+
+def test_table2_reports_the_spread_over_seeds_during_training(tmp_path):
+    import json
+
+    from lerobot_murm.experiments.report import training_spread
+
+    runs = tmp_path / "table2" / "runs"
+    runs.mkdir(parents=True)
+    for seed, successes in enumerate(((0.1, 0.3), (0.3, 0.3), (0.2, 0.6))):
+        curve = [[5000, 0.0, successes[0]], [5000, 0.5, 0.0], [10000, 0.0, successes[1]]]
+        (runs / f"s{seed}.json").write_text(json.dumps({"task": "place_in_box", "cell": "single-global-paper-eps2",
+                                                          "curve": curve}))
+    # std over seeds at 5,000 updates: 10 points; at 10,000: 17.32; their mean 13.66
+    table = training_spread(tmp_path / "table2", {"single-global-paper-eps2": 2.97})
+    assert "| place_in_box | single-global-paper-eps2 | 13.66 | 3 | 2.97 |" in table

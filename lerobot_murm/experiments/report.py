@@ -10,9 +10,11 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
+
 from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
-from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE5, TASKS
+from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE2_SPREAD, TABLE5, TASKS
 from lerobot_murm.experiments.results import grid_results, success_text, write_tables
 
 
@@ -110,6 +112,26 @@ def epsilon_table(results: Path) -> str:
     return "\n".join(lines) + f"\n\n{note}\n"
 
 
+def training_spread(results: Path, paper: dict[str, float]) -> str:
+    """Table 2's second row: per cell, the mean over the learning curve's evaluations of the
+    sample std over seeds of the success rate (unmasked, validation episodes), in points."""
+    curves: dict[tuple[str, str], dict[float, list[float]]] = {}
+    for path in sorted((results / "runs").glob("*.json")):
+        r = json.loads(path.read_text())
+        points = curves.setdefault((r["task"], r["cell"]), {})
+        for step, mask_p, success in r["curve"]:
+            if mask_p == 0.0:
+                points.setdefault(step, []).append(100 * success)
+    lines = ["| task | cell | mean std during training (points) | seeds | paper |", "|---|---|---:|---:|---:|"]
+    for (task, cell), points in curves.items():
+        spreads = [float(np.std(v, ddof=1)) for v in points.values() if len(v) > 1]
+        seeds = max((len(v) for v in points.values()), default=0)
+        value = paper.get(cell)
+        spread = f"{np.mean(spreads):.2f}" if spreads else "-"
+        lines.append(f"| {task} | {cell} | {spread} | {seeds} | {'' if value is None else f'{value:.2f}'} |")
+    return "\n".join(lines) + "\n"
+
+
 def _values(values: list[float] | None) -> str:
     return "-" if values is None else ", ".join("-" if v is None else f"{v:.3g}" for v in values)
 
@@ -163,6 +185,8 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             + (f"\nTraining time (Table 1's time column):\n\n{time_table(rows, TABLE1_TIME, 'single-global-128')}"
                if results.name == "table1" else "")
             + (f"\nReward threshold of each cell:\n\n{epsilon_table(results)}" if sweeps_epsilon(results) else "")
+            + (f"\nSpread over seeds during training (Table 2's second row; validation episodes of the learning "
+               f"curve):\n\n{training_spread(results, TABLE2_SPREAD)}" if results.name == "table2" else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
             + "Runs:\n\n" + run_list(results, split)

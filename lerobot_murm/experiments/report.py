@@ -15,7 +15,7 @@ import numpy as np
 from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE2_SPREAD, TABLE5, TASKS
-from lerobot_murm.experiments.results import grid_results, success_text, write_tables
+from lerobot_murm.experiments.results import grid_results, seed_curves, success_text, write_tables
 
 
 def _rows(table_csv: Path) -> list[dict]:
@@ -115,20 +115,15 @@ def epsilon_table(results: Path) -> str:
 def training_spread(results: Path, paper: dict[str, float]) -> str:
     """Table 2's second row: per cell, the mean over the learning curve's evaluations of the
     sample std over seeds of the success rate (unmasked, validation episodes), in points."""
-    curves: dict[tuple[str, str], dict[float, list[float]]] = {}
-    for path in sorted((results / "runs").glob("*.json")):
-        r = json.loads(path.read_text())
-        points = curves.setdefault((r["task"], r["cell"]), {})
-        for step, mask_p, success in r["curve"]:
-            if mask_p == 0.0:
-                points.setdefault(step, []).append(100 * success)
+    runs = [json.loads(path.read_text()) for path in sorted((results / "runs").glob("*.json"))]
     lines = ["| task | cell | mean std during training (points) | seeds | paper |", "|---|---|---:|---:|---:|"]
-    for (task, cell), points in curves.items():
-        spreads = [float(np.std(v, ddof=1)) for v in points.values() if len(v) > 1]
-        seeds = max((len(v) for v in points.values()), default=0)
+    for (task, cell, mask_p), seeds in seed_curves(runs).items():
+        if mask_p != 0.0:
+            continue
+        steps = sorted(set.intersection(*(set(s) for s in seeds)))
+        spread = f"{np.mean([np.std([s[step] for s in seeds], ddof=1) for step in steps]):.2f}" if len(seeds) > 1 else "-"
         value = paper.get(cell)
-        spread = f"{np.mean(spreads):.2f}" if spreads else "-"
-        lines.append(f"| {task} | {cell} | {spread} | {seeds} | {'' if value is None else f'{value:.2f}'} |")
+        lines.append(f"| {task} | {cell} | {spread} | {len(seeds)} | {'' if value is None else f'{value:.2f}'} |")
     return "\n".join(lines) + "\n"
 
 

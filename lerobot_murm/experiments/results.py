@@ -65,19 +65,27 @@ def markdown_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def seed_curves(results: list[dict]) -> dict[tuple[str, str, float], list[dict[float, float]]]:
+    """Each (task, cell, masking)'s learning curves: one {step: success %} per seed."""
+    curves: dict[tuple[str, str, float], list[dict[float, float]]] = defaultdict(list)
+    for result in results:
+        by_mask: dict[float, dict[float, float]] = defaultdict(dict)
+        for step, mask_p, rate in result["curve"]:
+            by_mask[mask_p][step] = 100 * rate
+        for mask_p, points in by_mask.items():
+            curves[(result["task"], result["cell"], mask_p)].append(points)
+    return curves
+
+
 def plot_curves(results: list[dict], path: Path) -> None:
     tasks = list(dict.fromkeys(r["task"] for r in results))
     cells = list(dict.fromkeys(r["cell"] for r in results))
+    curves = seed_curves(results)
     fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks) + 2, 4.8), squeeze=False)
     for ax, task in zip(axes[0], tasks, strict=True):
-        curves: dict[tuple, list[dict[float, float]]] = defaultdict(list)
-        for result in (r for r in results if r["task"] == task):
-            by_mask: dict[float, dict[float, float]] = defaultdict(dict)
-            for step, mask_p, rate in result["curve"]:
-                by_mask[mask_p][step] = 100 * rate
-            for mask_p, points in by_mask.items():
-                curves[(result["cell"], mask_p)].append(points)
-        for (cell, mask_p), seeds in curves.items():  # colour: cell; line style: masking
+        for (curve_task, cell, mask_p), seeds in curves.items():  # colour: cell; line style: masking
+            if curve_task != task:
+                continue
             steps = sorted(set.intersection(*(set(s) for s in seeds)))
             values = np.array([[s[step] for step in steps] for s in seeds])
             label = f"{cell}" + (f", masking {mask_p:.0%}" if mask_p else "")

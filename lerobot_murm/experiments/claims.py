@@ -121,36 +121,33 @@ class Verdict:
     evidence: str
 
 
-def per_task(grid: str, cells: list[str], mask_p: float, decide: Callable[[dict[str, Cell]], str],
-             short: dict[str, str] | None = None, tasks: tuple[str, ...] = TASKS):
-    """A judge that applies `decide` to these cells on every task where all of them have run."""
+def judge_cells(grid: str, cells: list[str], decide: Callable[[dict[str, Cell]], str],
+                conditions: list[tuple[str, str, float]], short: dict[str, str] | None = None):
+    """A judge that applies `decide` to these cells under each condition (its label, task and
+    masking level) where all of them have run."""
 
     def judge(tables: Tables) -> Judged:
         verdicts, evidence = [], []
-        for task in tasks:
+        for label, task, mask_p in conditions:
             if (row := tables.row(grid, task, cells, mask_p)) is not None:
                 verdict = decide(row)
                 verdicts.append(verdict)
-                evidence.append(f"{task}: {_numbers(row, short)} ({verdict})")
-        return Judged(verdicts, evidence, len(tasks))
+                evidence.append(f"{label}: {_numbers(row, short)} ({verdict})")
+        return Judged(verdicts, evidence, len(conditions))
 
     return judge
+
+
+def per_task(grid: str, cells: list[str], mask_p: float, decide: Callable[[dict[str, Cell]], str],
+             short: dict[str, str] | None = None):
+    """A judge of these cells on every task, at one masking level."""
+    return judge_cells(grid, cells, decide, [(task, task, mask_p) for task in TASKS], short)
 
 
 def per_masking(grid: str, cells: list[str], decide: Callable[[dict[str, Cell]], str],
                 short: dict[str, str] | None = None, levels: tuple[float, ...] = (0.0, 0.5)):
-    """A judge for task-1 grids: `decide` at each masking level where all the cells have run."""
-
-    def judge(tables: Tables) -> Judged:
-        verdicts, evidence = [], []
-        for mask_p in levels:
-            if (row := tables.row(grid, "place_in_box", cells, mask_p)) is not None:
-                verdict = decide(row)
-                verdicts.append(verdict)
-                evidence.append(f"{mask_p:.0%} masking: {_numbers(row, short)} ({verdict})")
-        return Judged(verdicts, evidence, len(levels))
-
-    return judge
+    """A judge for task-1 grids: these cells at each masking level."""
+    return judge_cells(grid, cells, decide, [(f"{m:.0%} masking", "place_in_box", m) for m in levels], short)
 
 
 SINGLE = "single-global"

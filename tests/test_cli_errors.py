@@ -166,6 +166,14 @@ def test_other_commands_name_the_missing_folder(tmp_path, capsys):
     assert code == 1 and "is not a dataset `murm collect` or `murm encode --to-dataset` made" in line
 
 
+def test_a_torn_grid_table_is_a_clear_error(tmp_path, capsys):
+    (tmp_path / "results" / "table4").mkdir(parents=True)
+    (tmp_path / "results" / "table4" / "table.csv").write_text("task,cell\nplace_in_box,single-glo")
+    code, line = murm_error(["report", "--results", tmp_path / "results", "--out", tmp_path / "REPORT.md"], capsys)
+    assert code == 2 and "table.csv is not a grid table (10 of its 12 columns missing, 'method' first)" in line
+    assert "run `murm report` again to rebuild it from its runs" in line
+
+
 def test_debug_shows_the_traceback(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="unknown task"):
         main([*COLLECT, "--root", str(tmp_path / "ds"), "--task", "stack", "--debug"])

@@ -8,13 +8,13 @@ whenever a grid finishes. The words every rule uses are DEFINITIONS below.
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot_murm.experiments.paper import TABLE5, TASKS
+from lerobot_murm.experiments.results import read_table
 
 HOLDS, PARTLY, FAILS, PENDING = "holds", "partly", "does not hold", "not run yet"
 
@@ -56,12 +56,11 @@ class Tables:
     def __init__(self, results_dir: Path):
         self.cells: dict[tuple[str, str, str, float], Cell] = {}
         for table in sorted(Path(results_dir).glob("*/table.csv")):
-            with table.open() as f:
-                for row in csv.DictReader(f):
-                    std = row["success_std"]
-                    self.cells[(table.parent.name, row["task"], row["cell"], round(float(row["mask_p"]), 4))] = Cell(
-                        float(row["success_mean"]), float(std) if std not in ("", "None") else None,
-                        int(row["seeds"]), int(row["episodes_per_seed"]), float(row["train_steps_per_s"]))
+            for row in read_table(table):
+                std = row["success_std"]
+                self.cells[(table.parent.name, row["task"], row["cell"], round(float(row["mask_p"]), 4))] = Cell(
+                    float(row["success_mean"]), float(std) if std not in ("", "None") else None,
+                    int(row["seeds"]), int(row["episodes_per_seed"]), float(row["train_steps_per_s"]))
 
     def get(self, grid: str, task: str, cell: str, mask_p: float = 0.0) -> Cell | None:
         return self.cells.get((grid, task, cell, round(mask_p, 4)))

@@ -5,7 +5,6 @@ time (`murm report`), which also refreshes the README's results tables (between
 
 from __future__ import annotations
 
-import csv
 import json
 import re
 from pathlib import Path
@@ -15,12 +14,7 @@ import numpy as np
 from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE2_SPREAD, TABLE5, TASKS
-from lerobot_murm.experiments.results import grid_results, seed_curves, success_text, write_tables
-
-
-def _rows(table_csv: Path) -> list[dict]:
-    with table_csv.open() as f:
-        return list(csv.DictReader(f))
+from lerobot_murm.experiments.results import grid_results, read_table, seed_curves, success_text, write_tables
 
 
 def _row_keys(rows: list[dict]) -> list[tuple[str, float]]:
@@ -166,7 +160,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
     for results in sorted(results_dir.iterdir()):
         if not (results / "table.csv").exists():
             continue
-        rows = _rows(results / "table.csv")
+        rows = read_table(results / "table.csv")
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
         beside = "; the paper's value beside ours" if results.name in PAPER_TABLES else ""
         split = load_reproduce_config(results / "config.yaml").report_split
@@ -218,7 +212,7 @@ def update_readme(results_dir: Path, readme: Path) -> list[str]:
         if not (grid / "table.csv").exists():
             return match.group(0)
         filled.append(name)
-        table = compact_table(name, _rows(grid / "table.csv"), grid_tasks(grid))
+        table = compact_table(name, read_table(grid / "table.csv"), grid_tasks(grid))
         return f"<!-- results:{name} -->\n{table}<!-- /results:{name} -->"
 
     text = re.sub(r"<!-- results:(\w+) -->.*?<!-- /results:\1 -->", refill, text, flags=re.S)

@@ -46,6 +46,18 @@ def aggregate(results: list[dict], split: str = "test") -> list[dict]:
     return rows
 
 
+def read_table(path: Path) -> list[dict]:
+    """A grid's table.csv, its rows as strings; one clear error if it is not one (torn, or
+    written by something else)."""
+    with Path(path).open(newline="") as f:
+        reader = csv.DictReader(f)
+        missing = [c for c in COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise ValueError(f"{path} is not a grid table ({len(missing)} of its {len(COLUMNS)} columns missing, "
+                             f"'{missing[0]}' first); delete it and run `murm report` again to rebuild it from its runs")
+        return list(reader)
+
+
 def success_text(row: dict, digits: int = 1) -> str:
     """'mean ± std' over seeds; one seed has no sample std (ddof 1), so none is shown. Works
     on rows as `aggregate` makes them and as read back from table.csv (strings)."""

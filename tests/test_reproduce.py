@@ -98,6 +98,10 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
     assert recipe != run_recipe(table3, "pick_up", single3, 2)
     assert recipe != run_recipe(table3, "place_in_box", single3, 1)
     assert run_recipe(table4, "pick_up", table4.cells[3], 1) != run_recipe(table4, "pick_up", table4.cells[4], 1)
+    table1 = load_reproduce_config(REPO / "configs/reproduce/table1.yaml", [f"--results_dir={tmp_path}"])
+    widths = {cell.policy["hidden_units"]: cell for cell in table1.cells}
+    assert run_recipe(table1, "place_in_box", widths[128], 0) == run_recipe(table4, "place_in_box", single4, 0)
+    assert run_recipe(table1, "place_in_box", widths[64], 0) != run_recipe(table4, "place_in_box", single4, 0)
 
     final = [{"mask_p": p, "success_rate": 0.5, "episodes": 100} for p in (0.0, 0.1)]
     stored = {"final": final, "curve": [[5000, 0.0, 0.4], [5000, 0.1, 0.3]], "recipe": recipe}

@@ -166,12 +166,22 @@ def hardware() -> str:
     return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads{gpu}"
 
 
+def policy_overrides(cell: CellSpec) -> dict:
+    """The cell's policy fields that differ from its method's defaults: a cell that spells a
+    default out (Table 1's 128 units) trains the same run as one that leaves it out."""
+    cameras = list(cell.cameras)  # placeholder encoders and epsilon: nothing is read from disk
+    common = {"method": cell.method, "cameras": cameras, "encoders": dict.fromkeys(cameras, {}),
+              "epsilon": [1.0] * len(cameras)}
+    default, given = MurmConfig(**common), MurmConfig(**common, **cell.policy)
+    return {key: value for key, value in cell.policy.items() if getattr(given, key) != getattr(default, key)}
+
+
 def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
     """Everything that decides what a run trains (not its name, grid or evaluation masks)."""
     scales = {k: v for k, v in (("paper_epsilon", cell.paper_epsilon), ("epsilon_quantile", cell.epsilon_quantile)) if v}
     return json.loads(json.dumps({  # as it reads back from a result file
         "task": task, "dataset": dataset_root(config, task, cell).name, "method": cell.method,
-        "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": dict(cell.policy),
+        "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": policy_overrides(cell),
         "vqvae": asdict(config.vqvae), "train": asdict(config.train), "seed": seed,
         # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
         "precision": str(resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))),

@@ -86,6 +86,16 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert reused["final"] == original["final"][:1] and reused["final"][0]["mask_p"] == 0.0
     assert reused["experiment"] == "other" and reused["cell"] == "global-only"
 
+    # a cell with other demonstrations (Table 7) collects them but encodes them with the task's encoders
+    fewer = tmp_path / "fewer.yaml"
+    fewer.write_text(yaml.safe_dump(smoke | {"name": "fewer", "cells": [single | {"episodes": 3, "label": "demos3"}]}))
+    murm(["reproduce", "--config", str(fewer), *args[3:]], tmp_path)
+    datasets = sorted(p.name for p in (tmp_path / "work" / "datasets").iterdir())
+    assert len(datasets) == 2 and any("-3ep-" in name for name in datasets)
+    assert len(list((tmp_path / "work" / "vqvae").iterdir())) == 1  # no second set of encoders
+    run = json.loads((tmp_path / "results/fewer/runs/place_in_box__demos3__seed0.json").read_text())
+    assert "-3ep-" in run["dataset"] and run["recipe"]["encoder_dataset"] == original["dataset"]
+
 
 def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_levels(tmp_path):
     from lerobot_murm.experiments.reproduce import finished_elsewhere, run_recipe
@@ -102,6 +112,12 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
     widths = {cell.policy["hidden_units"]: cell for cell in table1.cells}
     assert run_recipe(table1, "place_in_box", widths[128], 0) == run_recipe(table4, "place_in_box", single4, 0)
     assert run_recipe(table1, "place_in_box", widths[64], 0) != run_recipe(table4, "place_in_box", single4, 0)
+    # Table 7's demonstrations vary; its encoders are the task's own, trained on the default collection
+    table7 = load_reproduce_config(REPO / "configs/reproduce/table7.yaml", [f"--results_dir={tmp_path}"])
+    demos250 = run_recipe(table7, "place_in_box", table7.cells[0], 0)
+    default = run_recipe(table4, "place_in_box", table4.cells[3], 0)
+    assert demos250["dataset"] != default["dataset"] and demos250["encoder_dataset"] == default["dataset"]
+    assert "encoder_dataset" not in default
 
     final = [{"mask_p": p, "success_rate": 0.5, "episodes": 100} for p in (0.0, 0.1)]
     stored = {"final": final, "curve": [[5000, 0.0, 0.4], [5000, 0.1, 0.3]], "recipe": recipe}

@@ -1,7 +1,8 @@
 """`murm reproduce --config configs/reproduce/<name>.yaml`: demonstrations -> VQ-VAEs -> IQL -> tables.
 
 Every artefact is built once and found again by name under `work_dir`: a dataset by its
-recipe, an encoder by its dataset, camera and steps, a latent cache by fingerprints, a
+recipe, an encoder by its dataset (each task's default collection: `encoder_root`), camera
+and steps, a latent cache by fingerprints, a
 training run by its cell and seed (a half-finished run resumes from its checkpoint).
 Each finished run writes a small JSON file under `results/<name>/runs/`; a rerun skips
 those, so a long grid runs in as many sittings as it takes. A run another grid already
@@ -54,22 +55,23 @@ from lerobot_murm.vqvae.object_pixels import OBJECT_PIXELS_FILE, check_encoders
 from lerobot_murm.vqvae.train import train_vqvae
 
 
-def dataset_root(config: ReproduceConfig, task: str, cell: CellSpec) -> Path:
+def dataset_root(config: ReproduceConfig, task: str, cell: CellSpec | None = None) -> Path:
+    """Where the cell's demonstrations live (no cell: the collection's default recipe)."""
     c = config.collection
-    episodes = cell.episodes or c.episodes
-    noisy = c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction
+    episodes = (cell and cell.episodes) or c.episodes
+    noisy = c.noisy_fraction if cell is None or cell.noisy_fraction is None else cell.noisy_fraction
     std = default_noise_std(task) if c.noise_std is None else c.noise_std
     name = f"{task}-scene{SCENE_VERSION}-{episodes}ep-std{std:g}-noisy{noisy:g}-seed{c.seed}-{c.image_size}px"
     return Path(config.work_dir) / "datasets" / name
 
 
-def collect_config(config: ReproduceConfig, task: str, cell: CellSpec) -> CollectConfig:
+def collect_config(config: ReproduceConfig, task: str, cell: CellSpec | None = None) -> CollectConfig:
     root = dataset_root(config, task, cell)
     c = config.collection
     return CollectConfig(
-        task=task, root=root, episodes=cell.episodes or c.episodes, workers=c.workers, cameras=CAMERA_NAMES,
-        image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,  # None: the task's calibrated std
-        noisy_fraction=c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction,
+        task=task, root=root, episodes=(cell and cell.episodes) or c.episodes, workers=c.workers,
+        cameras=CAMERA_NAMES, image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,  # None: the task's std
+        noisy_fraction=c.noisy_fraction if cell is None or cell.noisy_fraction is None else cell.noisy_fraction,
     )
 
 
@@ -90,6 +92,14 @@ def encoder_is_finished(out: Path, steps: int) -> bool:
 
 def encoder_dir(config: ReproduceConfig, root: Path) -> Path:
     return Path(config.work_dir) / "vqvae" / f"{root.name}-{config.vqvae.steps}steps"
+
+
+def encoder_root(config: ReproduceConfig, task: str) -> Path:
+    """The dataset a task's encoders learn from: the default collection, whatever the cell's
+    demonstrations. The paper trains one VQ-VAE per camera once (4.2) and encodes every
+    experiment's states and goals with it (4.3); Table 7 varies what the policy learns from,
+    not the encoders."""
+    return dataset_root(config, task)
 
 
 def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
@@ -179,8 +189,10 @@ def policy_overrides(cell: CellSpec) -> dict:
 def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
     """Everything that decides what a run trains (not its name, grid or evaluation masks)."""
     scales = {k: v for k, v in (("paper_epsilon", cell.paper_epsilon), ("epsilon_quantile", cell.epsilon_quantile)) if v}
+    dataset, encoders = dataset_root(config, task, cell).name, encoder_root(config, task).name
     return json.loads(json.dumps({  # as it reads back from a result file
-        "task": task, "dataset": dataset_root(config, task, cell).name, "method": cell.method,
+        "task": task, "dataset": dataset, **({"encoder_dataset": encoders} if encoders != dataset else {}),
+        "method": cell.method,
         "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": policy_overrides(cell),
         "vqvae": asdict(config.vqvae), "train": asdict(config.train), "seed": seed,
         # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
@@ -211,9 +223,10 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> 
     """One training run and its final evaluation (resumed from its checkpoint, or read back
     when finished); its result, for the driver to store."""
     root = ensure_dataset(collect_config(config, task, cell))
-    encoders = encoder_dir(config, root)
+    encoders_from = ensure_dataset(collect_config(config, task))
+    encoders = encoder_dir(config, encoders_from)
     for camera in cell.cameras:
-        ensure_encoder(config, root, camera)
+        ensure_encoder(config, encoders_from, camera)
     recipe = run_recipe(config, task, cell, seed)
     start = time.perf_counter()
     summary = train(train_config(config, task, cell, seed, root, encoders))
@@ -295,9 +308,10 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
             _store(path, reused | {"experiment": config.name, "cell": cell.label})
         else:
             todo.append((shipped, task, cell, seed))
-    needed = {c.root: c for c in (collect_config(shipped, task, cell) for _, task, cell, _ in todo)}
+    needed = {c.root: c for _, task, cell, _ in todo for c in (collect_config(shipped, task, cell),
+                                                                collect_config(shipped, task))}
     build_datasets(executor, list(needed.values()), config.collection.workers)
-    encoders = sorted({(dataset_root(shipped, task, cell), camera) for _, task, cell, _ in todo for camera in cell.cameras})
+    encoders = sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras})
     _run_all(executor, ensure_encoder, [(shipped, root, camera) for root, camera in encoders])
     for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
         _store(result_path(config, task, cell, seed), result)

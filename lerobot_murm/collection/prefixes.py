@@ -1,0 +1,67 @@
+"""Collections of one recipe share their episodes: a smaller one is a larger one's start.
+
+Episode i depends on the recipe's seed and i alone (`episodes.run_episode`), so the
+250-episode collection of Table 7 is the first 250 episodes of the 1000-episode one, and
+the 3000-episode one carries the 1000 on. Instead of simulating them again, a smaller
+collection is cut from a finished larger one with LeRobot's `delete_episodes`, and a larger
+one starts as a copy of a finished smaller one that `collect(resume=True)` carries on. Both
+are built beside their final place and renamed, so a dataset folder is complete or absent.
+"""
+
+from __future__ import annotations
+
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from lerobot.datasets.dataset_tools import delete_episodes
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from lerobot_murm.collection import dataset as murm_dataset
+from lerobot_murm.collection.collect import CollectConfig
+
+
+def finished_siblings(config: CollectConfig) -> dict[int, Path]:
+    """Finished collections of `config.recipe` beside `config.root`, by episode count."""
+    found = {}
+    for root in sorted(config.root.parent.iterdir()) if config.root.parent.is_dir() else []:
+        summary = murm_dataset.read_summary(root) if root.is_dir() and root != config.root else None
+        if summary and summary["episodes"] >= summary["requested_episodes"] \
+                and murm_dataset.read_recipe(root) == config.recipe:
+            found[summary["episodes"]] = root
+    return found
+
+
+def cut_from_larger(config: CollectConfig) -> bool:
+    """Make `config`'s collection from the first episodes of a finished larger one of its
+    recipe; False if there is none."""
+    larger = {n: root for n, root in finished_siblings(config).items() if n >= config.episodes}
+    if not larger:
+        return False
+    source = larger[min(larger)]
+    cutting = config.root.with_name(f"{config.root.name}.cutting")
+    shutil.rmtree(cutting, ignore_errors=True)  # what a stopped cut left
+    dataset = LeRobotDataset(config.repo_id, root=source, video_backend="pyav")
+    total = dataset.meta.total_episodes
+    if total > config.episodes:
+        delete_episodes(dataset, list(range(config.episodes, total)), output_dir=cutting, repo_id=config.repo_id)
+    else:
+        shutil.copytree(source, cutting)
+    successes = np.array(murm_dataset.read_summary(source)["episode_success"][: config.episodes], bool)
+    murm_dataset.write_summary(cutting, config.recipe, successes, config.episodes)
+    cutting.rename(config.root)
+    return True
+
+
+def start_from_smaller(config: CollectConfig) -> CollectConfig:
+    """If `config.root` does not exist yet, start it as a copy of the largest finished smaller
+    collection of its recipe; the config to collect the rest with (resuming where one was copied)."""
+    smaller = {n: root for n, root in finished_siblings(config).items() if n < config.episodes}
+    if config.root.exists() or not smaller:
+        return config
+    copying = config.root.with_name(f"{config.root.name}.copying")
+    shutil.rmtree(copying, ignore_errors=True)
+    shutil.copytree(smaller[max(smaller)], copying)
+    copying.rename(config.root)
+    return replace(config, resume=True)

@@ -1,0 +1,84 @@
+"""Collections of one recipe share their episodes: a smaller one cut from a larger one, and a
+larger one carrying a smaller one on, hold exactly the frames a direct collection would."""
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+from lerobot_murm.collection import CollectConfig, collect
+from lerobot_murm.collection.dataset import SUMMARY_FILE, episode_successes
+from lerobot_murm.collection.prefixes import cut_from_larger, start_from_smaller
+from lerobot_murm.collection.shards import is_complete
+from lerobot_murm.experiments.executors import SerialExecutor
+from lerobot_murm.experiments.reproduce import build_datasets
+
+SMALL = {"task": "pick_up", "cameras": ("global",), "image_size": 16, "workers": 1}
+REPO = "local/murm_pick_up"
+
+
+def config(root: Path, episodes: int, **kwargs) -> CollectConfig:
+    return CollectConfig(root=root, episodes=episodes, **SMALL, **kwargs)
+
+
+def assert_same_dataset(a: Path, b: Path) -> None:
+    first, second = (LeRobotDataset(REPO, root=root, video_backend="pyav") for root in (a, b))
+    assert first.meta.total_episodes == second.meta.total_episodes and len(first) == len(second)
+    columns = [c.hf_dataset.with_format("numpy")[:] for c in (first, second)]
+    for key in ("action", "observation.state", "next.success", "episode_index", "frame_index"):
+        np.testing.assert_array_equal(columns[0][key], columns[1][key], err_msg=key)
+    for i in (0, len(first) // 2, len(first) - 1):
+        for key in ("observation.images.global", "observation.images.global_goal"):
+            assert torch.equal(first[i][key], second[i][key]), (i, key)
+    summaries = [json.loads((root / SUMMARY_FILE).read_text()) for root in (a, b)]
+    for key in ("recipe", "episodes", "requested_episodes", "episode_success"):
+        assert summaries[0][key] == summaries[1][key], key
+    assert list(episode_successes(REPO, a)) == summaries[0]["episode_success"]
+
+
+def test_a_smaller_collection_is_the_start_of_a_larger_one(tmp_path):
+    datasets = tmp_path / "datasets"
+    collect(config(datasets / "four", 4))
+    collect(config(tmp_path / "direct" / "two", 2))
+
+    two = config(datasets / "two", 2)
+    (datasets / "two.cutting" / "data").mkdir(parents=True)  # what a cut killed midway left
+    (datasets / "two.cutting" / "data" / "torn.parquet").write_bytes(b"PAR1 torn")
+    assert cut_from_larger(two) and is_complete(two)
+    assert_same_dataset(two.root, tmp_path / "direct" / "two")
+    assert not list(datasets.glob("*.cutting"))
+    other_recipe = config(datasets / "two-clean", 2, noisy_fraction=0.0)
+    assert not cut_from_larger(other_recipe) and not other_recipe.root.exists()
+
+
+def test_a_larger_collection_carries_a_finished_smaller_one_on(tmp_path):
+    datasets = tmp_path / "datasets"
+    collect(config(datasets / "two", 2))
+    collect(config(tmp_path / "direct" / "four", 4))
+
+    four = start_from_smaller(config(datasets / "four", 4))
+    assert four.resume and four.root.exists() and not is_complete(four)
+    collect(four)
+    assert_same_dataset(four.root, tmp_path / "direct" / "four")
+    assert is_complete(config(datasets / "two", 2))  # the smaller one is left as it was
+
+
+def test_a_grid_simulates_only_the_largest_collection_of_a_recipe(tmp_path, monkeypatch):
+    import lerobot_murm.experiments.reproduce as reproduce
+
+    simulated = []
+    real_collect = reproduce.collect
+    monkeypatch.setattr(reproduce, "collect", lambda c: simulated.append((c.root.name, c.resume)) or real_collect(c))
+    datasets = tmp_path / "datasets"
+    collect(config(datasets / "two", 2))  # finished before: the four-episode collection carries it on
+    wanted = [config(datasets / name, n) for name, n in (("one", 1), ("four", 4), ("three", 3))]
+    build_datasets(SerialExecutor(), wanted, workers=1)
+    assert simulated == [("four", True)]
+    assert all(is_complete(c) for c in wanted)
+    collect(config(tmp_path / "direct" / "three", 3))
+    assert_same_dataset(datasets / "three", tmp_path / "direct" / "three")
+    build_datasets(SerialExecutor(), [replace(c, resume=False) for c in wanted], workers=1)
+    assert simulated == [("four", True)]  # nothing left to do

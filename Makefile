@@ -2,7 +2,7 @@
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test bench
+.PHONY: install run test bench tables
 
 $(STAMP): pyproject.toml scripts/install.sh
 	bash scripts/install.sh
@@ -17,6 +17,14 @@ run: $(STAMP)
 # pytest exits 5 when it collects no test: that is not a failure of the suite.
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 0; fi; exit $$rc
+
+# The whole study, every grid in the order that lets later grids reuse finished runs (Table 3's
+# global camera is Table 4's single view, ...); stop it at any time, it resumes where it was.
+GRIDS := updates table4 table3 table1 table2 table6 table5 table7
+JOBS := 2
+tables: $(STAMP)
+	for grid in $(GRIDS); do $(VENV)/bin/murm reproduce --config configs/reproduce/$$grid.yaml --jobs $(JOBS) || exit 1; done
+	$(VENV)/bin/murm report --readme README.md
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_env.py

@@ -220,6 +220,7 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert "6.0 min (the run of table4/pick_up__single-global__seed0)" in rest
     assert "Machine time of the runs this grid trained (1): 0.1 h." in rest
     assert (grid / "table.csv").exists() and (grid / "curves.png").exists()
+    assert (grid / "vs_paper.png").exists() and "![ours beside the paper](results/table3/vs_paper.png)" in table
 
     from lerobot_murm.experiments.report import update_readme
 
@@ -247,12 +248,16 @@ def test_the_table5_section_gives_time_per_update_relative_to_the_single_view_ba
     assert table.count("separated_q") == 1  # one row per cell, masking levels aside
 
 
-def test_a_grid_without_a_paper_table_gets_no_paper_columns():
-    from lerobot_murm.experiments.report import comparison
+def test_a_grid_without_a_paper_table_gets_no_paper_columns(tmp_path):
+    from lerobot_murm.experiments.report import comparison, plot_against_paper
 
     rows = [{"task": "pick_up", "cell": "single-global", "mask_p": "0.0", "success_mean": "56.0", "success_std": "",
              "seeds": "1"}]
     ours = comparison("updates", rows)
+    assert plot_against_paper("table3", rows, ("pick_up",), tmp_path / "table3.png")
+    assert not plot_against_paper("updates", rows, ("pick_up",), tmp_path / "updates.png")  # no paper table
+    assert not plot_against_paper("table3", rows, ("place_in_box",), tmp_path / "none.png")  # nothing run there
+    assert not (tmp_path / "updates.png").exists() and not (tmp_path / "none.png").exists()
     assert ours.splitlines()[0] == "| cell | masking | place_in_box | place_in_random_box | pick_up |"
     assert "| single-global | 0% | - | - | 56.0 (n=1) |" in ours  # one seed: no sample std
     assert "pick_up: ours | paper" in comparison("table3", rows)

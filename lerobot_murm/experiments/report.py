@@ -9,7 +9,11 @@ import json
 import re
 from pathlib import Path
 
-import numpy as np
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 
 from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
@@ -56,6 +60,40 @@ def comparison(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -> s
                 cells.append("" if value is None else f"{value:.1f}")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def plot_against_paper(name: str, rows: list[dict], tasks: tuple[str, ...], path: Path) -> bool:
+    """`vs_paper.png`: per task and row (the paper's rows first, then ours it has no value
+    for), our mean with the sample std over seeds as error bar beside the paper's value;
+    False (nothing drawn) for a grid of our own or if nothing has run."""
+    per_task = _per_task(name, rows, tasks)
+    drawn = [t for i, t in enumerate(tasks) if any(values[i][0] for values in per_task.values())]
+    if name not in PAPER_TABLES or not drawn:
+        return False
+    labels = [f"{cell}, masking {mask_p:.0%}" if mask_p and "authors'" not in cell else cell for cell, mask_p in per_task]
+    fig, axes = plt.subplots(1, len(drawn), figsize=(4.2 * len(drawn) + 3.5, 0.45 * len(labels) + 1.4),
+                             squeeze=False, sharey=True)
+    y = np.arange(len(labels))
+    for ax, task in zip(axes[0], drawn, strict=True):
+        column = [values[tasks.index(task)] for values in per_task.values()]
+        ours = [float(r["success_mean"]) if r else np.nan for r, _ in column]
+        spread = [float(r["success_std"]) if r and r["success_std"] not in ("", None) else 0.0 for r, _ in column]
+        paper = [np.nan if value is None else value for _, value in column]
+        ax.barh(y - 0.2, ours, 0.4, xerr=spread, color="tab:blue", label="ours (mean ± sample std over seeds)",
+                error_kw={"elinewidth": 1, "capsize": 2})
+        ax.barh(y + 0.2, paper, 0.4, color="tab:gray", label="paper")
+        for k, (r, _) in enumerate(column):
+            at = 1 if r is None else ours[k] + spread[k] + 1
+            ax.text(at, k - 0.2, "not run yet" if r is None else f"n={r['seeds']}", va="center", fontsize=7)
+        ax.set(title=task, xlabel="success rate (%, test episodes)", xlim=(0, 100))
+    axes[0, 0].set_yticks(y, labels, fontsize=8)
+    axes[0, 0].invert_yaxis()
+    handles, legend = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, legend, loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0, 1.0 / (len(labels) + 3), 1, 1))
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return True
 
 
 def time_table(rows: list[dict], paper: dict[str, float], base_cell: str | None = None) -> str:
@@ -164,12 +202,14 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
         beside = "; the paper's value beside ours" if results.name in PAPER_TABLES else ""
         split = load_reproduce_config(results / "config.yaml").report_split
+        against_paper = plot_against_paper(results.name, rows, grid_tasks(results), results / "vs_paper.png")
         sections.append(
             f"## {results.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds "
             f"(n = seeds finished; a single seed has none), {rows[0]['episodes_per_seed']} {split} episodes per seed and masking "
             f"level{beside}. "
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
+            + (f"\n![ours beside the paper]({where / 'vs_paper.png'})\n" if against_paper else "")
             + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
             + (f"\nTraining time (Table 1's time column):\n\n{time_table(rows, TABLE1_TIME, 'single-global-128')}"
                if results.name == "table1" else "")

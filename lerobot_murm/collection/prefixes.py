@@ -10,10 +10,14 @@ are built beside their final place and renamed, so a dataset folder is complete 
 
 from __future__ import annotations
 
+import logging
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
+import datasets
 import numpy as np
 from lerobot.datasets.dataset_tools import delete_episodes
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -45,13 +49,29 @@ def cut_from_larger(config: CollectConfig) -> bool:
     dataset = LeRobotDataset(config.repo_id, root=source, video_backend="pyav")
     total = dataset.meta.total_episodes
     if total > config.episodes:
-        delete_episodes(dataset, list(range(config.episodes, total)), output_dir=cutting, repo_id=config.repo_id)
+        with _without_video_probe_warning():
+            delete_episodes(dataset, list(range(config.episodes, total)), output_dir=cutting, repo_id=config.repo_id)
     else:
         shutil.copytree(source, cutting)
     successes = np.array(murm_dataset.read_summary(source)["episode_success"][: config.episodes], bool)
     murm_dataset.write_summary(cutting, config.recipe, successes, config.episodes)
     cutting.rename(config.root)
     return True
+
+
+@contextmanager
+def _without_video_probe_warning() -> Iterator[None]:
+    """`delete_episodes` opens its result with LeRobot's default video backend, whose torchcodec
+    probe logs a page-long warning where FFmpeg's libraries are missing; these datasets hold
+    images, no videos, so the probe says nothing that matters here."""
+    probe = logging.getLogger("lerobot.utils.import_utils")
+    level = probe.level
+    probe.setLevel(logging.ERROR)
+    datasets.disable_progress_bars()  # one bar per parquet map; LeRobot's own bars stay
+    try:
+        yield
+    finally:
+        probe.setLevel(level)
 
 
 def start_from_smaller(config: CollectConfig) -> CollectConfig:

@@ -295,6 +295,15 @@ def build_datasets(executor, collections: list[CollectConfig], workers: int) -> 
     _run_all(executor, ensure_dataset, [(c,) for c in unfinished if c not in todo], cpus=1, gpus=0)
 
 
+def remaining_time(elapsed_s: float, finished: int, left: int) -> str:
+    """'; N runs left, about T' at this sitting's pace so far (runs side by side included)."""
+    if not left:
+        return ""
+    hours = elapsed_s / finished * left / 3600
+    runs = f"{left} run{'s' if left > 1 else ''} left"
+    return f"; {runs}, about {hours:.1f} h" if hours >= 1 else f"; {runs}, about {max(hours * 60, 1):.0f} min"
+
+
 def _run_all(executor, fn, jobs: list[tuple], **resources) -> None:
     for _ in executor.map(fn, jobs, **resources):
         pass
@@ -327,10 +336,12 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     build_datasets(executor, list(needed.values()), config.collection.workers)
     encoders = sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras})
     _run_all(executor, ensure_encoder, [(shipped, root, camera) for root, camera in encoders])
+    started = time.perf_counter()
     for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
         _store(result_path(config, task, cell, seed), result)
         print(f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: " + ", ".join(
-            f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in result["final"]))
+            f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in result["final"])
+            + remaining_time(time.perf_counter() - started, finished, len(todo) - finished))
     rows = write_tables(config, grid_results(config, out / "runs"), out)
     print(markdown_table(rows))
     return out

@@ -87,6 +87,14 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert reused["final"] == original["final"][:1] and reused["final"][0]["mask_p"] == 0.0
     assert reused["experiment"] == "other" and reused["cell"] == "global-only"
 
+    # a timed grid (Table 5) trains its runs itself, one at a time, whatever --jobs says
+    timed = tmp_path / "timed.yaml"
+    timed.write_text(yaml.safe_dump(smoke | {"name": "timed", "timed": True, "cells": [single]}))
+    out = murm(["reproduce", "--config", str(timed), *args[3:], "--jobs", "2"], tmp_path)
+    assert "timed times its runs: they train one at a time" in out
+    assert (tmp_path / "work" / "runs" / "timed").exists()
+    assert "reused_from" not in json.loads((tmp_path / "results/timed/runs/place_in_box__single-global__seed0.json").read_text())
+
     # a cell with other demonstrations (Table 7) collects them but encodes them with the task's encoders
     fewer = tmp_path / "fewer.yaml"
     fewer.write_text(yaml.safe_dump(smoke | {"name": "fewer", "cells": [single | {"episodes": 3, "label": "demos3"}]}))

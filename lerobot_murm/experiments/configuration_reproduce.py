@@ -95,6 +95,10 @@ class ReproduceConfig:
     # held-out episodes per task simulated again to score each new encoder on the object's
     # pixels (object_pixels.json beside it, as `murm check-encoders`); 0: no check
     object_check_episodes: int = 20
+    # a grid whose numbers are times (Table 5): its runs train one at a time in the driver,
+    # whatever --jobs or --executor say, and none is taken from another grid (those shared
+    # the machine with other runs)
+    timed: bool = False
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]

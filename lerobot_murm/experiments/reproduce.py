@@ -313,6 +313,9 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     """Run the grid's unfinished runs on `executor` (default: one after another in this
     process): datasets, then encoders, then training runs, each stage's jobs side by side."""
     executor = executor or SerialExecutor()
+    if config.timed and not isinstance(executor, SerialExecutor):
+        print(f"{config.name} times its runs: they train one at a time in this process")
+        executor = SerialExecutor()  # the one given stays its owner's to close
     for folder in (config.work_dir, config.results_dir):
         check_writable(Path(folder))
     out = Path(config.results_dir) / config.name
@@ -326,7 +329,8 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
         path = result_path(config, task, cell, seed)
         if path.exists():
             continue
-        reused = finished_elsewhere(config, run_recipe(config, task, cell, seed), list(cell.eval_mask_p))
+        reused = None if config.timed else finished_elsewhere(config, run_recipe(config, task, cell, seed),
+                                                              list(cell.eval_mask_p))
         if reused is not None:
             _store(path, reused | {"experiment": config.name, "cell": cell.label})
         else:

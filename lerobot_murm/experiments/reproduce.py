@@ -345,7 +345,7 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
         _store(result_path(config, task, cell, seed), result)
         print(f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: " + ", ".join(
             f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in result["final"])
-            + remaining_time(time.perf_counter() - started, finished, len(todo) - finished))
+            + remaining_time(time.perf_counter() - started, finished, len(todo) - finished), flush=True)  # logs too
     rows = write_tables(config, grid_results(config, out / "runs"), out)
     print(markdown_table(rows))
     return out

@@ -59,11 +59,13 @@ def test_a_larger_collection_carries_a_finished_smaller_one_on(tmp_path):
     collect(config(datasets / "two", 2))
     collect(config(tmp_path / "direct" / "four", 4))
 
+    (datasets / "four.copying" / "meta").mkdir(parents=True)  # what a copy killed midway left
     four = start_from_smaller(config(datasets / "four", 4))
     assert four.resume and four.root.exists() and not is_complete(four)
     collect(four)
     assert_same_dataset(four.root, tmp_path / "direct" / "four")
     assert is_complete(config(datasets / "two", 2))  # the smaller one is left as it was
+    assert not (datasets / "four.copying").exists()
 
 
 def test_a_grid_simulates_only_the_largest_collection_of_a_recipe(tmp_path, monkeypatch):

@@ -170,3 +170,52 @@ def test_the_smoke_grid_on_a_ray_cluster_matches_the_local_executor_and_survives
     assert _frames(tmp_path / "ray" / "datasets" / name).equals(_frames(tmp_path / "local" / "datasets" / name))
     assert sorted(p.name for p in (tmp_path / "ray" / "datasets").iterdir()) == [name]  # shards merged, removed
     assert "(collect_shard pid=" in ray_out and "(train_run pid=" in ray_out  # the work ran as Ray tasks
+
+
+def _processes_with(marker: str) -> list[int]:
+    """Processes whose environment holds `marker` (every process a command started inherits it)."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            if marker.encode() in (proc / "environ").read_bytes():
+                pids.append(int(proc.name))
+        except (OSError, ValueError):
+            continue
+    return pids
+
+
+@pytest.mark.slow
+def test_no_job_process_outlives_a_killed_driver_and_a_stopped_run_keeps_its_checkpoint(tmp_path):
+    """kill -9 of `murm reproduce --jobs 2` mid-training: each run saves its checkpoint at its
+    next step and its process exits instead of starting the jobs still queued for it."""
+    import torch
+
+    name, value = "MURM_TEST_DRIVER", tmp_path.name
+    marker = f"{name}={value}"
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", name: value}
+    # no evaluation before the end: the only checkpoints are a run's start and the one its stop writes
+    long = [*TINY, "--train.steps=100000", "--train.eval_every=100000", "--seeds=[0,1,2]"]
+    driver = subprocess.Popen([str(MURM), "reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *long,
+                               "--work_dir=work", "--results_dir=results", "--jobs=2"],
+                              cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    logs = lambda: sorted((tmp_path / "work" / "runs").glob("smoke/*/*/seed*/log.csv"))  # noqa: E731
+    try:
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline and driver.poll() is None:
+            if len(logs()) == 2 and all(len(log.read_text().splitlines()) > 2 for log in logs()):
+                break  # both jobs are training
+            time.sleep(0.2)
+        assert driver.poll() is None, "the driver ended before both runs were training"
+        driver.kill()
+        deadline = time.monotonic() + 120
+        while _processes_with(marker) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert not _processes_with(marker), "job or simulator processes outlived their driver"
+    finally:
+        for pid in _processes_with(marker):
+            os.kill(pid, signal.SIGKILL)
+    assert len(logs()) == 2, logs()  # the jobs queued behind them never started
+    for log in logs():
+        last_logged = int(log.read_text().splitlines()[-1].split(",")[0])
+        state = torch.load(log.parent / "checkpoints" / "last" / "training_state.pt", weights_only=False)
+        assert state["step"] >= last_logged > 0  # saved when the run stopped

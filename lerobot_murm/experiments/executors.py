@@ -9,7 +9,11 @@ result file at once and a stopped driver loses no finished run. Every job is ide
 
 from __future__ import annotations
 
+import multiprocessing
+import multiprocessing.connection
 import os
+import signal
+import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from multiprocessing import get_context
@@ -41,8 +45,36 @@ def threads_per_job(jobs: int, cores: int | None = None) -> int:
     return max(1, (cores or os.cpu_count() or 1) // jobs)
 
 
-def _set_threads(threads: int) -> None:
+_parent_gone = threading.Event()  # in a job process: the driver died
+_job_running = threading.Event()  # in a job process: a job is under way
+
+
+def _start_job_process(threads: int) -> None:
+    """A job process divides the cores, and does not outlive its driver: when the driver dies
+    (kill -9), an idle job process exits, and a running job gets the SIGTERM of a stop
+    request (a training run saves its checkpoint at its next step), after which the process
+    exits instead of taking the jobs still queued for it."""
     torch.set_num_threads(threads)
+    sentinel = multiprocessing.parent_process().sentinel
+
+    def exit_with_driver() -> None:
+        multiprocessing.connection.wait([sentinel])
+        _parent_gone.set()
+        if not _job_running.is_set():
+            os._exit(1)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=exit_with_driver, daemon=True, name="exit-with-driver").start()
+
+
+def _run_job(fn: Callable, *job: Any) -> Any:
+    _job_running.set()
+    try:
+        return fn(*job)
+    finally:
+        _job_running.clear()
+        if _parent_gone.is_set():
+            os._exit(1)
 
 
 class ProcessExecutor:
@@ -60,11 +92,11 @@ class ProcessExecutor:
         if jobs < 1:
             raise ValueError(f"--jobs must be at least 1, got {jobs}")
         self.threads = threads_per_job(jobs, cores)
-        self.pool = ProcessPoolExecutor(jobs, mp_context=get_context("forkserver"), initializer=_set_threads,
+        self.pool = ProcessPoolExecutor(jobs, mp_context=get_context("forkserver"), initializer=_start_job_process,
                                         initargs=(self.threads,))
 
     def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
-        futures = {self.pool.submit(fn, *job): job for job in jobs}
+        futures = {self.pool.submit(_run_job, fn, *job): job for job in jobs}
         pending = set(futures)
         try:
             while pending:

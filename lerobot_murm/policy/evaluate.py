@@ -8,7 +8,7 @@ evaluation and `lerobot-eval` mask identically. The simulators run in worker pro
 
 from __future__ import annotations
 
-import multiprocessing
+import os
 import signal
 import time
 from dataclasses import dataclass, field
@@ -48,13 +48,13 @@ def evaluation_seeds(episodes: int, first_seed: int) -> list[int]:
     return list(range(first_seed, first_seed + episodes))
 
 
-def _make_worker_env(env_id: str, kwargs: dict) -> gym.Env:
+def _make_worker_env(env_id: str, kwargs: dict, trainer_pid: int) -> gym.Env:
     """A simulator worker leaves a stop to the trainer. Ctrl-C reaches the terminal's whole
     process group and `pkill -f murm` matches the forked workers too; a worker that died of
     it would break the trainer's pipes before the trainer could save its checkpoint.
     Gymnasium also calls this once in the trainer itself, to read the spaces: that process
-    keeps its handlers."""
-    if multiprocessing.parent_process() is not None:
+    (itself a child process under `murm reproduce --jobs`) keeps its handlers."""
+    if os.getpid() != trainer_pid:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
     return gym.make(env_id, **kwargs)
@@ -69,7 +69,7 @@ class Evaluator:
         self.task, self.cameras, self.num_envs = task, list(cameras), num_envs
         kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
         self.envs = gym.vector.AsyncVectorEnv(
-            [partial(_make_worker_env, GYM_IDS[task], kwargs) for _ in range(num_envs)], context="fork"
+            [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs)], context="fork"
         )
 
     def close(self) -> None:

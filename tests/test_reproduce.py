@@ -7,6 +7,7 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -97,13 +98,15 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
 
     # a cell with other demonstrations (Table 7) collects them but encodes them with the task's encoders
     fewer = tmp_path / "fewer.yaml"
-    fewer.write_text(yaml.safe_dump(smoke | {"name": "fewer", "cells": [single | {"episodes": 3, "label": "demos3"}]}))
+    fewer.write_text(yaml.safe_dump(smoke | {"name": "fewer", "cells": [single | {"episodes": 3, "label": "demos3",
+                                                                            "steps": 30}]}))
     murm(["reproduce", "--config", str(fewer), *args[3:]], tmp_path)
     datasets = sorted(p.name for p in (tmp_path / "work" / "datasets").iterdir())
     assert len(datasets) == 2 and any("-3ep-" in name for name in datasets)
     assert len(list((tmp_path / "work" / "vqvae").iterdir())) == 1  # no second set of encoders
     run = json.loads((tmp_path / "results/fewer/runs/place_in_box__demos3__seed0.json").read_text())
     assert "-3ep-" in run["dataset"] and run["recipe"]["encoder_dataset"] == original["dataset"]
+    assert run["steps"] == run["recipe"]["train"]["steps"] == 30  # the cell's own update count
 
 
 def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_levels(tmp_path):
@@ -127,6 +130,10 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
     default = run_recipe(table4, "place_in_box", table4.cells[3], 0)
     assert demos250["dataset"] != default["dataset"] and demos250["encoder_dataset"] == default["dataset"]
     assert "encoder_dataset" not in default
+    # a cell's own update count is part of its recipe; the grid's count spelled out is not a new recipe
+    longer = run_recipe(table4, "place_in_box", replace(table4.cells[3], steps=40_000), 0)
+    assert longer["train"]["steps"] == 40_000 and longer != default
+    assert run_recipe(table4, "place_in_box", replace(table4.cells[3], steps=table4.train.steps), 0) == default
 
     final = [{"mask_p": p, "success_rate": 0.5, "episodes": 100} for p in (0.0, 0.1)]
     stored = {"final": final, "curve": [[5000, 0.0, 0.4], [5000, 0.1, 0.3]], "recipe": recipe}
@@ -320,6 +327,7 @@ def test_table2_runs_the_papers_epsilons_mapped_to_our_encoders_scale(tiny_pipel
     ({"paper_epsilon": [2.0, 3.0]}, "2 paper_epsilon values for 1 cameras"),
     ({"epsilon_quantile": [1.5]}, "epsilon_quantile values must be in (0, 1)"),
     ({"paper_epsilon": [0.0]}, "epsilon values must be positive"),
+    ({"steps": 0}, "steps must be at least 1, got 0"),
 ])
 def test_a_cell_with_a_bad_epsilon_is_refused_with_one_line(fields, error):
     from lerobot_murm.experiments.configuration_reproduce import CellSpec

@@ -60,6 +60,7 @@ class CellSpec:
     episodes: int | None = None  # demonstrations (Table 7); default: the collection's
     noisy_fraction: float | None = None  # share of noisy demonstrations (Table 7)
     policy: dict = field(default_factory=dict)  # any other MurmConfig field
+    steps: int | None = None  # updates of this cell's runs; default: the grid's train.steps
 
     def __post_init__(self) -> None:
         if not self.label:
@@ -73,6 +74,8 @@ class CellSpec:
                 raise ValueError(f"cell {self.label}: {len(values)} {key} values for {len(self.cameras)} cameras")
         if any(v <= 0 for v in (self.epsilon or []) + (self.paper_epsilon or [])):
             raise ValueError(f"cell {self.label}: epsilon values must be positive")
+        if self.steps is not None and self.steps < 1:
+            raise ValueError(f"cell {self.label}: steps must be at least 1, got {self.steps}")
         if any(not 0 < q < 1 for q in self.epsilon_quantile or []):
             raise ValueError(f"cell {self.label}: epsilon_quantile values must be in (0, 1)")
 
@@ -145,7 +148,7 @@ class ReproduceConfig:
                         noisy_fraction=c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction,
                     )
                     TrainConfig(
-                        dataset="", task=task, policy=policy, steps=t.steps, batch_size=t.batch_size,
+                        dataset="", task=task, policy=policy, steps=cell.steps or t.steps, batch_size=t.batch_size,
                         log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
                         final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p),
                         eval_envs=t.eval_envs, seed=min(self.seeds),

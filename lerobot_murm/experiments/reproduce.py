@@ -169,8 +169,8 @@ def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, 
     t = config.train
     return TrainConfig(
         dataset=str(root), task=task, policy=policy, output_dir=str(run_dir(config, task, cell, seed)),
-        cache_dir=str(Path(config.work_dir) / "latent_cache"), steps=t.steps, batch_size=t.batch_size, seed=seed,
-        device=config.device, log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
+        cache_dir=str(Path(config.work_dir) / "latent_cache"), steps=cell.steps or t.steps, batch_size=t.batch_size,
+        seed=seed, device=config.device, log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
         final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p), eval_envs=t.eval_envs,
         eval_authors_masking=cell.eval_authors_masking,
     )
@@ -199,7 +199,8 @@ def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) ->
         "task": task, "dataset": dataset, **({"encoder_dataset": encoders} if encoders != dataset else {}),
         "method": cell.method,
         "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": policy_overrides(cell),
-        "vqvae": asdict(config.vqvae), "train": asdict(config.train), "seed": seed,
+        "vqvae": asdict(config.vqvae), "train": asdict(config.train) | {"steps": cell.steps or config.train.steps},
+        "seed": seed,
         # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
         "precision": str(resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))),
     }))

@@ -82,9 +82,9 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
     assert [r["episodes"] for r in summary["final"]] == [2, 2]
     assert summary["validation_seeds"] == [200_000, 200_001] and summary["eval_seeds"] == [300_000, 300_001]
 
-    # a finished run is not redone; a longer one resumes from the checkpoint
+    # a finished run is not redone; asked for more steps it resumes from the checkpoint (its
+    # evaluation at 6 steps kept beside), asked for fewer it refuses in one line
     assert "resuming" not in run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
-    (run_dir / "final_eval.json").unlink()
     state_file = run_dir / "checkpoints" / "last" / "training_state.pt"
     state = torch.load(state_file, weights_only=False)
     assert 0 < state["elapsed_s"] <= summary["wall_s"]
@@ -94,6 +94,11 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
     with (run_dir / "log.csv").open() as f:
         assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]
     assert json.loads((run_dir / "final_eval.json").read_text())["wall_s"] > 1000  # every sitting counts
+    assert json.loads((run_dir / "final_eval_6.json").read_text()) == summary
+    fewer = subprocess.run([str(BIN / "murm"), "train", "--config", str(config), "--steps=4"], cwd=tmp_path,
+                           capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    assert fewer.returncode != 0 and "is trained to 8 steps, more than the 4 asked" in fewer.stderr
+    assert "Traceback" not in fewer.stderr
 
     overall = lerobot_eval(Path(summary["checkpoint"]), tmp_path / "eval")
     assert overall["n_episodes"] == 2

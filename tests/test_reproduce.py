@@ -108,6 +108,15 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert "-3ep-" in run["dataset"] and run["recipe"]["encoder_dataset"] == original["dataset"]
     assert run["steps"] == run["recipe"]["train"]["steps"] == 30  # the cell's own update count
 
+    # the cell changes (more updates): its stored result is set aside, not lost, and the run
+    # trains on from its checkpoint instead of from scratch
+    fewer.write_text(fewer.read_text().replace("steps: 30", "steps: 40"))
+    out = murm(["reproduce", "--config", str(fewer), *args[3:]], tmp_path)
+    assert "its cell changed since it ran" in out and "resuming from step 30" in out
+    runs = tmp_path / "results/fewer/runs"
+    assert json.loads((runs / "place_in_box__demos3__seed0.json").read_text())["steps"] == 40
+    assert json.loads((runs / "superseded/place_in_box__demos3__seed0.json").read_text()) == run
+
 
 def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_levels(tmp_path):
     from lerobot_murm.experiments.reproduce import finished_elsewhere, run_recipe

@@ -181,14 +181,34 @@ def hardware() -> str:
     return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads{gpu}"
 
 
-def policy_overrides(cell: CellSpec) -> dict:
-    """The cell's policy fields that differ from its method's defaults: a cell that spells a
-    default out (Table 1's 128 units) trains the same run as one that leaves it out."""
-    cameras = list(cell.cameras)  # placeholder encoders and epsilon: nothing is read from disk
-    common = {"method": cell.method, "cameras": cameras, "encoders": dict.fromkeys(cameras, {}),
+def policy_overrides(method: str, cameras: list[str], policy: dict) -> dict:
+    """The policy fields that differ from the method's defaults: a cell that spells a default
+    out (Table 1's 128 units) trains the same run as one that leaves it out."""
+    cameras = list(cameras)  # placeholder encoders and epsilon: nothing is read from disk
+    common = {"method": method, "cameras": cameras, "encoders": dict.fromkeys(cameras, {}),
               "epsilon": [1.0] * len(cameras)}
-    default, given = MurmConfig(**common), MurmConfig(**common, **cell.policy)
-    return {key: value for key, value in cell.policy.items() if getattr(given, key) != getattr(default, key)}
+    default, given = MurmConfig(**common), MurmConfig(**common, **policy)
+    return {key: value for key, value in policy.items() if getattr(given, key) != getattr(default, key)}
+
+
+def same_recipe(stored: dict | None, recipe: dict) -> bool:
+    """Whether a stored run was trained by `recipe` (policies compared by what differs from
+    their method's defaults, so that recipes stored before that rule still match)."""
+    if stored is None:
+        return False
+    return stored | {"policy": policy_overrides(stored["method"], stored["cameras"], stored["policy"])} == recipe
+
+
+def set_aside(path: Path) -> Path:
+    """Move a result its cell no longer produces to `runs/superseded/` (kept, never overwritten)."""
+    folder = path.parent / "superseded"
+    folder.mkdir(exist_ok=True)
+    target = folder / path.name
+    for n in range(1, 1000):
+        if not target.exists():
+            break
+        target = folder / f"{path.stem}.{n}{path.suffix}"
+    return path.rename(target)
 
 
 def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
@@ -198,7 +218,7 @@ def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) ->
     return json.loads(json.dumps({  # as it reads back from a result file
         "task": task, "dataset": dataset, **({"encoder_dataset": encoders} if encoders != dataset else {}),
         "method": cell.method,
-        "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": policy_overrides(cell),
+        "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": policy_overrides(cell.method, cell.cameras, cell.policy),
         "vqvae": asdict(config.vqvae), "train": asdict(config.train) | {"steps": cell.steps or config.train.steps},
         "seed": seed,
         # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
@@ -215,7 +235,7 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
         result = json.loads(path.read_text())
         if "validation_seeds" not in result:  # an earlier setting's run, chosen on its test seeds
             continue
-        if result.get("recipe") != recipe or not set(mask_ps) <= {r["mask_p"] for r in result["final"]}:
+        if not same_recipe(result.get("recipe"), recipe) or not set(mask_ps) <= {r["mask_p"] for r in result["final"]}:
             continue
         return result | {
             "final": [r for r in result["final"] if r["mask_p"] in mask_ps],
@@ -327,11 +347,14 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     grid = [(task, cell, seed) for task in config.tasks for cell in config.cells for seed in config.seeds]
     todo = []
     for task, cell, seed in grid:
-        path = result_path(config, task, cell, seed)
+        path, recipe = result_path(config, task, cell, seed), run_recipe(config, task, cell, seed)
         if path.exists():
-            continue
-        reused = None if config.timed else finished_elsewhere(config, run_recipe(config, task, cell, seed),
-                                                              list(cell.eval_mask_p))
+            stored = json.loads(path.read_text()).get("recipe")
+            if stored is None or same_recipe(stored, recipe):  # None: an earlier setting's run, kept as it is
+                continue
+            print(f"{path.name}: its cell changed since it ran (set aside in {set_aside(path).parent}); "
+                  "it trains again, from its checkpoint where the change allows", flush=True)
+        reused = None if config.timed else finished_elsewhere(config, recipe, list(cell.eval_mask_p))
         if reused is not None:
             _store(path, reused | {"experiment": config.name, "cell": cell.label})
         else:

@@ -156,8 +156,15 @@ def train(config: TrainConfig) -> dict:
     device = resolve_device(config.device)
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    if (out / "final_eval.json").exists():  # a finished run is never redone
-        return json.loads((out / "final_eval.json").read_text())
+    finished = out / "final_eval.json"
+    if finished.exists():  # a finished run is never redone; asked for more steps, it trains on
+        summary = json.loads(finished.read_text())
+        if summary["steps"] == config.steps:
+            return summary
+        if summary["steps"] > config.steps:
+            raise CheckpointError(f"{out} is trained to {summary['steps']} steps, more than the {config.steps} asked; "
+                                  "move it away or set another output_dir")
+        finished.rename(out / f"final_eval_{summary['steps']}.json")  # kept: the evaluation at that step
     check_writable(Path(config.cache_dir))
     last = out / "checkpoints" / "last"
     state = _resume_state(out, last, device)  # before the expensive steps: a damaged run fails now

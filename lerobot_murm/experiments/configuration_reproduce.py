@@ -122,6 +122,18 @@ class ReproduceConfig:
             raise ValueError(f"seeds must be a non-empty list of numbers >= 0, got {self.seeds}")
         self.validate_stages()
 
+    def cell_episodes(self, cell: CellSpec | None = None) -> int:
+        """Demonstrations in the cell's dataset (no cell: the collection's default)."""
+        return (cell and cell.episodes) or self.collection.episodes
+
+    def cell_noisy_fraction(self, cell: CellSpec | None = None) -> float:
+        """Share of noisy demonstrations in the cell's dataset (no cell: the collection's default)."""
+        return self.collection.noisy_fraction if cell is None or cell.noisy_fraction is None else cell.noisy_fraction
+
+    def cell_steps(self, cell: CellSpec) -> int:
+        """Updates of the cell's runs."""
+        return cell.steps or self.train.steps
+
     def validate_stages(self) -> None:
         """Every stage's config of every cell, built as the grid will build it (no disk): a
         bad method, camera, policy field or number fails now, not after hours of collection."""
@@ -143,12 +155,12 @@ class ReproduceConfig:
                                     encoders={camera: {} for camera in cell.cameras}, device="cpu", **cell.policy)
                 for task in self.tasks:
                     CollectConfig(
-                        task=task, root=Path(self.work_dir), episodes=cell.episodes or c.episodes, workers=c.workers,
+                        task=task, root=Path(self.work_dir), episodes=self.cell_episodes(cell), workers=c.workers,
                         image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,
-                        noisy_fraction=c.noisy_fraction if cell.noisy_fraction is None else cell.noisy_fraction,
+                        noisy_fraction=self.cell_noisy_fraction(cell),
                     )
                     TrainConfig(
-                        dataset="", task=task, policy=policy, steps=cell.steps or t.steps, batch_size=t.batch_size,
+                        dataset="", task=task, policy=policy, steps=self.cell_steps(cell), batch_size=t.batch_size,
                         log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
                         final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p),
                         eval_envs=t.eval_envs, seed=min(self.seeds),

@@ -59,8 +59,7 @@ from lerobot_murm.vqvae.train import train_vqvae
 def dataset_root(config: ReproduceConfig, task: str, cell: CellSpec | None = None) -> Path:
     """Where the cell's demonstrations live (no cell: the collection's default recipe)."""
     c = config.collection
-    episodes = (cell and cell.episodes) or c.episodes
-    noisy = c.noisy_fraction if cell is None or cell.noisy_fraction is None else cell.noisy_fraction
+    episodes, noisy = config.cell_episodes(cell), config.cell_noisy_fraction(cell)
     std = default_noise_std(task) if c.noise_std is None else c.noise_std
     name = f"{task}-scene{SCENE_VERSION}-{episodes}ep-std{std:g}-noisy{noisy:g}-seed{c.seed}-{c.image_size}px"
     return Path(config.work_dir) / "datasets" / name
@@ -70,9 +69,9 @@ def collect_config(config: ReproduceConfig, task: str, cell: CellSpec | None = N
     root = dataset_root(config, task, cell)
     c = config.collection
     return CollectConfig(
-        task=task, root=root, episodes=(cell and cell.episodes) or c.episodes, workers=c.workers,
+        task=task, root=root, episodes=config.cell_episodes(cell), workers=c.workers,
         cameras=CAMERA_NAMES, image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,  # None: the task's std
-        noisy_fraction=c.noisy_fraction if cell is None or cell.noisy_fraction is None else cell.noisy_fraction,
+        noisy_fraction=config.cell_noisy_fraction(cell),
     )
 
 
@@ -169,7 +168,7 @@ def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, 
     t = config.train
     return TrainConfig(
         dataset=str(root), task=task, policy=policy, output_dir=str(run_dir(config, task, cell, seed)),
-        cache_dir=str(Path(config.work_dir) / "latent_cache"), steps=cell.steps or t.steps, batch_size=t.batch_size,
+        cache_dir=str(Path(config.work_dir) / "latent_cache"), steps=config.cell_steps(cell), batch_size=t.batch_size,
         seed=seed, device=config.device, log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
         final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p), eval_envs=t.eval_envs,
         eval_authors_masking=cell.eval_authors_masking,
@@ -203,10 +202,9 @@ def set_aside(path: Path) -> Path:
     """Move a result its cell no longer produces to `runs/superseded/` (kept, never overwritten)."""
     folder = path.parent / "superseded"
     folder.mkdir(exist_ok=True)
-    target = folder / path.name
-    for n in range(1, 1000):
-        if not target.exists():
-            break
+    target, n = folder / path.name, 0
+    while target.exists():
+        n += 1
         target = folder / f"{path.stem}.{n}{path.suffix}"
     return path.rename(target)
 
@@ -217,10 +215,9 @@ def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) ->
     dataset, encoders = dataset_root(config, task, cell).name, encoder_root(config, task).name
     return json.loads(json.dumps({  # as it reads back from a result file
         "task": task, "dataset": dataset, **({"encoder_dataset": encoders} if encoders != dataset else {}),
-        "method": cell.method,
-        "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales, "policy": policy_overrides(cell.method, cell.cameras, cell.policy),
-        "vqvae": asdict(config.vqvae), "train": asdict(config.train) | {"steps": cell.steps or config.train.steps},
-        "seed": seed,
+        "method": cell.method, "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales,
+        "policy": policy_overrides(cell.method, cell.cameras, cell.policy), "vqvae": asdict(config.vqvae),
+        "train": asdict(config.train) | {"steps": config.cell_steps(cell)}, "seed": seed,
         # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
         "precision": str(resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))),
     }))

@@ -57,14 +57,23 @@ def test_bad_configurations_fail_with_clear_messages(tiny_pipeline, tmp_path):
         make_config(encoders, method="single")
     with pytest.raises(ValueError, match="needs at least two cameras"):
         make_config(encoders, method="dropout", cameras=["global"])
+    with pytest.raises(ValueError, match="2 epsilon values for 1 cameras"):
+        make_config(encoders, method="single", cameras=["global"], epsilon=[1.0, 1.0])
+    # the disk is read when the settings are loaded (by the policy and the commands), not before
+    missing_camera = make_config(encoders, cameras=["global", "top"])
     with pytest.raises(FileNotFoundError, match="no VQ-VAE for camera 'top'"):
-        make_config(encoders, cameras=["global", "top"])
+        missing_camera.load_encoder_settings()
+    no_folder = MurmConfig(method="single", cameras=["global"])
+    with pytest.raises(ValueError, match="no encoder settings for camera 'global' yet"):
+        no_folder.encoder_config("global")
     with pytest.raises(ValueError, match="set encoder_dir"):
-        MurmConfig(method="single", cameras=["global"])
+        no_folder.load_encoder_settings()
     shutil.copytree(encoders / "global", tmp_path / "global", ignore=shutil.ignore_patterns("latent_distance.json"))
     with pytest.raises(ValueError, match="pass epsilon explicitly or run `murm encode`"):
-        make_config(tmp_path, method="single", cameras=["global"])
-    assert make_config(tmp_path, method="single", cameras=["global"], epsilon=[2.0]).epsilon == [2.0]
+        make_config(tmp_path, method="single", cameras=["global"]).load_encoder_settings()
+    given = make_config(tmp_path, method="single", cameras=["global"], epsilon=[2.0])
+    given.load_encoder_settings()
+    assert given.epsilon == [2.0] and given.encoder_config("global").camera == "global"
 
 
 def test_view_dropout_is_on_for_dropout_and_may_be_added_to_separated_q(tiny_pipeline, dataset):
@@ -113,6 +122,7 @@ def test_actor_scoped_dropout_hides_views_from_the_policy_only(tiny_pipeline, da
 
 def test_features_are_checked_against_the_encoders(tiny_pipeline):
     config = make_config(tiny_pipeline[1])
+    config.load_encoder_settings()
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))
     config.input_features = {image_key("global"): image, goal_image_key("global"): image}
     with pytest.raises(ValueError, match="needs observation.images.adjacent"):
@@ -127,6 +137,8 @@ def test_the_epsilon_defaults_to_the_suggestion_murm_encode_wrote(tiny_pipeline)
     import json
 
     config = make_config(tiny_pipeline[1])
+    assert config.epsilon is None  # read from the encoders when the settings are loaded
+    config.load_encoder_settings()
     expected = [json.loads((tiny_pipeline[1] / c / "latent_distance.json").read_text())["suggested_epsilon"]
                 for c in ("global", "adjacent")]
     assert config.epsilon == pytest.approx(expected)

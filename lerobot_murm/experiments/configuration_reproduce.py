@@ -150,9 +150,8 @@ class ReproduceConfig:
         c, t = self.collection, self.train
         for cell in self.cells:
             try:
-                epsilon = cell.epsilon if cell.epsilon is not None else [1.0] * len(cell.cameras)  # read later
-                policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), epsilon=epsilon,
-                                    encoders={camera: {} for camera in cell.cameras}, device="cpu", **cell.policy)
+                policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), epsilon=cell.epsilon,
+                                    device="cpu", **cell.policy)
                 for task in self.tasks:
                     CollectConfig(
                         task=task, root=Path(self.work_dir), episodes=self.cell_episodes(cell), workers=c.workers,

@@ -183,9 +183,7 @@ def hardware() -> str:
 def policy_overrides(method: str, cameras: list[str], policy: dict) -> dict:
     """The policy fields that differ from the method's defaults: a cell that spells a default
     out (Table 1's 128 units) trains the same run as one that leaves it out."""
-    cameras = list(cameras)  # placeholder encoders and epsilon: nothing is read from disk
-    common = {"method": method, "cameras": cameras, "encoders": dict.fromkeys(cameras, {}),
-              "epsilon": [1.0] * len(cameras)}
+    common = {"method": method, "cameras": list(cameras)}
     default, given = MurmConfig(**common), MurmConfig(**common, **policy)
     return {key: value for key, value in policy.items() if getattr(given, key) != getattr(default, key)}
 

@@ -62,7 +62,7 @@ class MurmConfig(PreTrainedConfig):
     method: str = "separated_q"
     cameras: list[str] = field(default_factory=lambda: ["global", "adjacent"])
     encoder_dir: str | None = None
-    # filled from encoder_dir when empty; stored with the checkpoint
+    # each camera's VQ-VAE config; filled from encoder_dir by load_encoder_settings, stored with the checkpoint
     encoders: dict[str, dict] = field(default_factory=dict)
     epsilon: list[float] | None = None  # eq. 5 per camera; None: the suggestion `murm encode` wrote
 
@@ -162,14 +162,23 @@ class MurmConfig(PreTrainedConfig):
             raise ValueError(f"hidden_units must be at least 1, got {self.hidden_units}")
         if self.method == "dropout" and not self.view_dropout:
             raise ValueError("method 'dropout' always drops views; use 'concat' for none")
+        self._check_encoder_settings()
+
+    def load_encoder_settings(self) -> None:
+        """Fill `encoders` (each camera's VQ-VAE config) and `epsilon` (`murm encode`'s
+        suggestion) from `encoder_dir` where the config leaves them empty. The policy and the
+        commands call this before any work; the config itself validates without the disk."""
         if not self.encoders:
             self._read_encoders()
-        missing = [c for c in self.cameras if c not in self.encoders]
-        if missing:
-            raise ValueError(f"no encoder for cameras {missing} (the config has {sorted(self.encoders)})")
         if self.epsilon is None:
             self.epsilon = [self._suggested_epsilon(c) for c in self.cameras]
-        if len(self.epsilon) != len(self.cameras):
+        self._check_encoder_settings()
+
+    def _check_encoder_settings(self) -> None:
+        missing = [c for c in self.cameras if c not in self.encoders]
+        if self.encoders and missing:
+            raise ValueError(f"no encoder for cameras {missing} (the config has {sorted(self.encoders)})")
+        if self.epsilon is not None and len(self.epsilon) != len(self.cameras):
             raise ValueError(f"{len(self.epsilon)} epsilon values for {len(self.cameras)} cameras")
 
     def _read_encoders(self) -> None:
@@ -191,6 +200,8 @@ class MurmConfig(PreTrainedConfig):
         return float(json.loads(path.read_text())["suggested_epsilon"])
 
     def encoder_config(self, camera: str) -> VQVAEConfig:
+        if camera not in self.encoders:
+            raise ValueError(f"no encoder settings for camera {camera!r} yet: call load_encoder_settings()")
         return VQVAEConfig(**self.encoders[camera])
 
     @property

@@ -49,6 +49,7 @@ class MurmPolicy(PreTrainedPolicy):
         # always 0) decay into subnormal floats within ~1000 steps, and subnormal arithmetic
         # made CPU training 15x slower by step 2000: flush them to zero (process-wide, harmless).
         torch.set_flush_denormal(True)
+        config.load_encoder_settings()
         if config.input_features:
             config.validate_features()
         self.cameras = list(config.cameras)

@@ -119,6 +119,7 @@ def replay_for_dataset(config: MurmConfig, dataset: LeRobotDataset, cache_dir: P
     encoded once with the frozen encoders (through the latent cache in `cache_dir`, or in
     memory without one).
     """
+    config.load_encoder_settings()
     encoder_dir = Path(config.encoder_dir or "")
     if features.latent_cameras(dataset.meta.features):
         fingerprints = {c: encoder_fingerprint(encoder_dir / c) for c in config.cameras} if config.encoder_dir else None

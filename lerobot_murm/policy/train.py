@@ -153,6 +153,7 @@ def _resume_state(out: Path, last: Path, device: torch.device) -> dict | None:
 
 
 def train(config: TrainConfig) -> dict:
+    config.policy.load_encoder_settings()  # a wrong encoder_dir fails before any work
     device = resolve_device(config.device)
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)

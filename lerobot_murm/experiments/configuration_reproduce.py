@@ -102,6 +102,9 @@ class ReproduceConfig:
     # whatever --jobs or --executor say, and none is taken from another grid (those shared
     # the machine with other runs)
     timed: bool = False
+    # a grid that chooses update counts (`updates`): the report says where each run's
+    # validation curve flattens, by the rule in experiments/flattening.py
+    choose_updates: bool = False
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]

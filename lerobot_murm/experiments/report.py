@@ -17,6 +17,7 @@ import numpy as np  # noqa: E402
 
 from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+from lerobot_murm.experiments.flattening import flattening_table
 from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE2_SPREAD, TABLE5, TASKS
 from lerobot_murm.experiments.results import grid_results, read_table, seed_curves, success_text, write_tables
 
@@ -201,7 +202,8 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         rows = read_table(results / "table.csv")
         where = results.relative_to(path.parent) if results.is_relative_to(path.parent) else results
         beside = "; the paper's value beside ours" if results.name in PAPER_TABLES else ""
-        split = load_reproduce_config(results / "config.yaml").report_split
+        config = load_reproduce_config(results / "config.yaml")
+        split = config.report_split
         against_paper = plot_against_paper(results.name, rows, grid_tasks(results), results / "vs_paper.png")
         sections.append(
             f"## {results.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds "
@@ -217,6 +219,10 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             + (f"\nSpread over seeds during training (Table 2's second row; validation episodes of the learning "
                f"curve):\n\n{training_spread(results, TABLE2_SPREAD)}" if results.name == "table2" else "")
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
+            + (f"Where each validation curve flattens (the first evaluation that no later one beats by more "
+               f"than two standard errors; `lerobot_murm/experiments/flattening.py`):\n\n"
+               f"{flattening_table(grid_results(config, results / 'runs'), config.train.eval_episodes)}\n"
+               if config.choose_updates else "")
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
             + "Runs:\n\n" + run_list(results, split)
         )

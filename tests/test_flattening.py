@@ -1,0 +1,51 @@
+"""Where a validation curve flattens: the rule that sets each method's update count."""
+
+import json
+from pathlib import Path
+
+import draccus
+import pytest
+
+from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+from lerobot_murm.experiments.flattening import flattens_at
+from lerobot_murm.experiments.report import write_report
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_a_curve_flattens_where_no_later_point_is_clearly_higher():
+    rising_then_flat = [(10_000, 0.10), (20_000, 0.50), (30_000, 0.55), (40_000, 0.50)]
+    assert flattens_at(rising_then_flat, episodes=100) == 20_000
+    # a dip that comes back does not move it (place_in_box's separated Q: 59 / 42 / 62 %) ...
+    assert flattens_at([(10_000, 0.3), (20_000, 0.59), (30_000, 0.42), (40_000, 0.62)], episodes=100) == 20_000
+    # ... a clear rise after it does
+    assert flattens_at([(10_000, 0.3), (20_000, 0.45), (30_000, 0.42), (40_000, 0.62)], episodes=100) == 40_000
+    # order of the points does not matter; a gain within two standard errors is not called
+    assert flattens_at([(20_000, 0.25), (10_000, 0.14)], episodes=100) == 10_000
+    assert flattens_at([(20_000, 0.25), (10_000, 0.14)], episodes=400) == 20_000  # more episodes: called
+    with pytest.raises(ValueError, match="empty learning curve"):
+        flattens_at([], episodes=100)
+
+
+def test_a_choosing_grids_report_says_where_each_curve_flattens_and_what_the_cell_gets(tmp_path):
+    grid = tmp_path / "results" / "updates"
+    (grid / "runs").mkdir(parents=True)
+    config = load_reproduce_config(REPO / "configs/reproduce/updates.yaml", ["--tasks=[place_in_box]"])
+    assert config.choose_updates and config.train.eval_episodes == 100
+    draccus.dump(config, (grid / "config.yaml").open("w"))
+    curves = {"single-global": [[10000, 0.0, 0.3], [20000, 0.0, 0.7], [30000, 0.0, 0.7], [40000, 0.0, 0.71]],
+              "dropout-global+adjacent": [[10000, 0.0, 0.0], [20000, 0.0, 0.06], [30000, 0.0, 0.08],
+                                          [40000, 0.0, 0.29], [10000, 0.5, 0.0], [20000, 0.5, 0.3],
+                                          [30000, 0.5, 0.3], [40000, 0.5, 0.3]]}
+    for cell, curve in curves.items():
+        run = {"task": "place_in_box", "cell": cell, "method": cell.split("-")[0], "cameras": ["global"], "seed": 0,
+               "steps": 40000, "final_validation": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}],
+               "final": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}], "wall_s": 360.0,
+               "train_steps_per_s": 90.0, "hardware": "cpu", "curve": curve}
+        (grid / "runs" / f"place_in_box__{cell}__seed0.json").write_text(json.dumps(run))
+
+    report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
+    assert "| place_in_box | single-global | 0 | 0% | 20,000 | 20,000 |" in report
+    # still rising unmasked: the cell's count is beyond what the grid measured, whatever masking says
+    assert "| place_in_box | dropout-global+adjacent | 0 | 0% | not seen (40,000 is the last point) | more than measured |" in report
+    assert "| place_in_box | dropout-global+adjacent | 0 | 50% | 20,000 | more than measured |" in report

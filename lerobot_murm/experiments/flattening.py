@@ -4,8 +4,8 @@ A choosing grid (`choose_updates: true`, e.g. `updates`, `updates_dropout`) trai
 than the tables and evaluates every `eval_every` updates on the same validation episodes.
 A curve *flattens at* the first evaluation after which no later point is clearly higher
 (by more than two standard errors of the difference, binomial over the episodes: the
-claims' rule for one seed). A cell takes the latest of its masking levels' points; a curve
-whose only such point is its last has not been seen to flatten.
+claims' rule for one seed). A cell takes the latest such point over its tasks and masking
+levels; a curve whose only such point is its last has not been seen to flatten.
 """
 
 from __future__ import annotations
@@ -29,17 +29,25 @@ def flattens_at(curve: list[tuple[int, float]], episodes: int) -> int:
                 if not any(clearly_higher(later, rate, episodes) for _, later in points[i + 1:]))
 
 
+def run_flattening(run: dict, episodes: int) -> dict[float, int]:
+    """Where a run's validation curve flattens, per masking level."""
+    levels = sorted({mask_p for _, mask_p, _ in run["curve"]})
+    return {p: flattens_at([(int(s), r) for s, m, r in run["curve"] if m == p], episodes) for p in levels}
+
+
 def flattening_table(runs: list[dict], episodes: int) -> str:
-    """Markdown: per task, cell and masking level, where each run's validation curve
-    flattens, and the update count the rule gives the cell (the latest of its levels)."""
-    lines = ["| task | cell | seed | masking | flattens at | the cell's updates |", "|---|---|---:|---:|---:|---:|"]
+    """Markdown: where each run's validation curve flattens per masking level, then the
+    updates the rule gives each cell: the latest point over its tasks and masking levels
+    (each method trains until it is flat on every task), or more than the grid measured."""
+    lines = ["| task | cell | seed | masking | flattens at |", "|---|---|---:|---:|---:|"]
+    chosen: dict[str, int | None] = {}
     for run in runs:
-        levels = sorted({mask_p for _, mask_p, _ in run["curve"]})
         last = int(max(step for step, _, _ in run["curve"]))
-        found = {p: flattens_at([(int(s), r) for s, m, r in run["curve"] if m == p], episodes) for p in levels}
-        chosen = max(found.values())
-        for p, step in found.items():
+        for p, step in run_flattening(run, episodes).items():
             at = f"{step:,}" if step < last else f"not seen ({last:,} is the last point)"
-            cell_choice = f"{chosen:,}" if chosen < last else "more than measured"
-            lines.append(f"| {run['task']} | {run['cell']} | {run['seed']} | {p:.0%} | {at} | {cell_choice} |")
+            lines.append(f"| {run['task']} | {run['cell']} | {run['seed']} | {p:.0%} | {at} |")
+            earlier = chosen.get(run["cell"], 0)
+            chosen[run["cell"]] = None if earlier is None or step == last else max(earlier, step)
+    lines += ["", "| cell | updates by the rule |", "|---|---:|"]
+    lines += [f"| {cell} | {'more than measured' if step is None else f'{step:,}'} |" for cell, step in chosen.items()]
     return "\n".join(lines) + "\n"

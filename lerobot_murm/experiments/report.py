@@ -19,7 +19,14 @@ from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.flattening import flattening_table
 from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE2_SPREAD, TABLE5, TASKS
-from lerobot_murm.experiments.results import grid_results, read_table, seed_curves, success_text, write_tables
+from lerobot_murm.experiments.results import (
+    final_evaluations,
+    grid_results,
+    read_table,
+    seed_curves,
+    success_text,
+    write_tables,
+)
 
 
 def _row_keys(rows: list[dict]) -> list[tuple[str, float]]:
@@ -167,7 +174,6 @@ def _values(values: list[float] | None) -> str:
 def run_list(results: Path, split: str = "test") -> str:
     """One line per run, with its final success on the grid's reported `split`, then the machine
     time the grid itself spent (reused runs were paid for by the grid that trained them)."""
-    final_key = "final_validation" if split == "validation" else "final"
     lines = [f"| task | cell | seed | steps | final success, {split} (masking: %) | wall | train steps/s | hardware |",
              "|---|---|---:|---:|---|---:|---:|---|"]
     trained, seconds = 0, 0.0
@@ -175,7 +181,7 @@ def run_list(results: Path, split: str = "test") -> str:
         r = json.loads(path.read_text())
         if "reused_from" not in r:
             trained, seconds = trained + 1, seconds + r["wall_s"]
-        finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in r[final_key])
+        finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in final_evaluations(r, split))
         wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
         lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
                      f"{wall} | {r['train_steps_per_s']} | {r['hardware']} |")

@@ -35,7 +35,7 @@ from lerobot_murm.env.murm_env import SCENE_VERSION
 from lerobot_murm.expert import default_noise_std
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
 from lerobot_murm.experiments.executors import SerialExecutor
-from lerobot_murm.experiments.results import grid_results, markdown_table, write_tables
+from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import resolve_precision
@@ -363,7 +363,8 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
         _store(result_path(config, task, cell, seed), result)
         print(f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: " + ", ".join(
-            f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %" for r in result["final"])
+            f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %"
+            for r in final_evaluations(result, config.report_split)) + f" ({config.report_split})"
             + remaining_time(time.perf_counter() - started, finished, len(todo) - finished), flush=True)  # logs too
     rows = write_tables(config, grid_results(config, out / "runs"), out)
     print(markdown_table(rows))

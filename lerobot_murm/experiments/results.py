@@ -22,13 +22,18 @@ COLUMNS = ["task", "cell", "method", "cameras", "mask_p", "success_mean", "succe
            "episodes_per_seed", "steps", "wall_s_mean", "train_steps_per_s"]
 
 
+def final_evaluations(result: dict, split: str) -> list[dict]:
+    """A run's final evaluations on the `split` episodes: "test" for reported tables,
+    "validation" for the grids that choose (whose test numbers nothing shows)."""
+    return result["final" if split == "test" else "final_validation"]
+
+
 def aggregate(results: list[dict], split: str = "test") -> list[dict]:
     """Mean and sample std over seeds per (task, cell, masking) of the final evaluations on
-    the `split` episodes: "test" for reported tables, "validation" for the grids that choose."""
-    key = "final" if split == "test" else "final_validation"
+    the `split` episodes."""
     groups: dict[tuple, list[tuple[dict, dict]]] = defaultdict(list)
     for result in results:
-        for final in result[key]:
+        for final in final_evaluations(result, split):
             cell = result["cell"] + (", authors' masking" if final.get("mask_mode") == "authors" else "")
             groups[(result["task"], cell, final["mask_p"])].append((result, final))
     rows = []

@@ -1,6 +1,7 @@
 """Where a validation curve flattens: the rule that sets each method's update count."""
 
 import json
+import sys
 from pathlib import Path
 
 import draccus
@@ -9,6 +10,9 @@ import pytest
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.flattening import flattens_at
 from lerobot_murm.experiments.report import write_report
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from stored_run import stored_run  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -40,10 +44,7 @@ def test_a_choosing_grids_report_says_where_each_curve_flattens_and_what_the_cel
                                                            [40000, 0.0, 0.29], [10000, 0.5, 0.0], [20000, 0.5, 0.3],
                                                            [30000, 0.5, 0.3], [40000, 0.5, 0.3]])]
     for task, cell, curve in curves:
-        run = {"task": task, "cell": cell, "method": cell.split("-")[0], "cameras": ["global"], "seed": 0,
-               "steps": 40000, "final_validation": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}],
-               "final": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}], "wall_s": 360.0,
-               "train_steps_per_s": 90.0, "hardware": "cpu", "curve": curve}
+        run = stored_run(task, cell, cell.split("-")[0], ["global"], steps=40000, curve=curve)
         (grid / "runs" / f"{task}__{cell}__seed0.json").write_text(json.dumps(run))
 
     report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()

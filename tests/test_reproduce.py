@@ -18,6 +18,7 @@ from lerobot_murm.policy.train import load_train_config
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from quiet import assert_quiet  # noqa: E402
+from stored_run import stored_run  # noqa: E402
 
 REPO = Path(__file__).parents[1]
 MURM = Path(sys.executable).parent / "murm"
@@ -232,9 +233,7 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     config = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", ["--tasks=[place_in_box,pick_up]", "--seeds=[0]"])
     draccus.dump(config, (grid / "config.yaml").open("w"))
     for cell, reused in (("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}), ("single-top", {})):
-        run = {"task": "pick_up", "cell": cell, "method": "single", "cameras": [cell.split("-")[1]], "seed": 0,
-               "steps": 20000, "final": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}], "wall_s": 360.0,
-               "train_steps_per_s": 90.0, "hardware": "cpu", "curve": [[20000, 0.0, 0.5]]} | reused
+        run = stored_run("pick_up", cell, "single", [cell.split("-")[1]], **reused)
         (grid / "runs" / f"pick_up__{cell}__seed0.json").write_text(json.dumps(run))
     (grid / "discussion.md").write_text("Top beats nothing here.\n")
 
@@ -356,10 +355,8 @@ def test_the_table2_report_says_on_which_scale_each_epsilon_is(tmp_path):
     draccus.dump(load_reproduce_config(REPO / "configs/reproduce/table2.yaml", ["--seeds=[0]"]), (grid / "config.yaml").open("w"))
     for cell, epsilon, paper, quantile in (("single-global-paper-eps0.1", 0.23, 0.1, 0.004),
                                           ("single-global-paper-eps2", 4.6, 2.0, 0.31)):
-        run = {"task": "place_in_box", "cell": cell, "method": "single", "cameras": ["global"], "seed": 0,
-               "steps": 20000, "final": [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}], "wall_s": 360.0,
-               "train_steps_per_s": 90.0, "hardware": "cpu", "curve": [[20000, 0.0, 0.5]], "epsilon": [epsilon],
-               "epsilon_paper_scale": [paper], "epsilon_quantile": [quantile]}
+        run = stored_run("place_in_box", cell, "single", ["global"], epsilon=[epsilon], epsilon_paper_scale=[paper],
+                         epsilon_quantile=[quantile])
         (grid / "runs" / f"place_in_box__{cell}__seed0.json").write_text(json.dumps(run))
     report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
     assert "| single-global-paper-eps0.1 | 0% | 50.0 (n=1) | 29.0 |" in report

@@ -10,13 +10,16 @@ levels; a curve whose only such point is its last has not been seen to flatten.
 
 from __future__ import annotations
 
-import math
+from lerobot_murm.experiments.claims import Cell, clearly_below
 
 
 def clearly_higher(later: float, earlier: float, episodes: int) -> bool:
-    """Whether success rate `later` (0-1) beats `earlier` by more than two standard errors."""
-    variance = (later * (1 - later) + earlier * (1 - earlier)) / episodes
-    return later - earlier > 2 * math.sqrt(variance)
+    """Whether success rate `later` (0-1) beats `earlier` by more than two standard errors:
+    the claims' `clearly_below` for one seed of `episodes` episodes each."""
+    def one_seed(rate: float) -> Cell:
+        return Cell(100 * rate, None, 1, episodes, 0.0)
+
+    return clearly_below(one_seed(earlier), one_seed(later))
 
 
 def flattens_at(curve: list[tuple[int, float]], episodes: int) -> int:

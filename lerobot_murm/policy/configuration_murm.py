@@ -106,8 +106,8 @@ class MurmConfig(PreTrainedConfig):
     # the mean (eq. 11 over the cameras that remain)
     dropped_q: str = "zeros"
     # matmuls of the training losses in "bf16" (parameters, optimizer state, output layers and
-    # losses stay fp32) or "fp32"; "auto": bf16 on CUDA and on CPUs with native bf16
-    # (avx512_bf16/amx_bf16), fp32 elsewhere (policy/precision.py). Not named `dtype`: that
+    # losses stay fp32) or "fp32"; "auto": bf16 on CPUs with native bf16 (avx512_bf16/amx_bf16),
+    # fp32 elsewhere, GPUs included (measured slower there; policy/precision.py). Not named `dtype`: that
     # field would make lerobot-train wrap forward in accelerate's autocast as well
     precision: str = "auto"
 

@@ -1,9 +1,12 @@
-"""Which precision IQL's matmuls run in: bfloat16 where the hardware computes it natively.
+"""Which precision IQL's matmuls run in: bfloat16 where it makes training faster.
 
 Parameters, Adam's state, the output layers and every loss stay float32; only the matmuls
 of the hidden layers (nearly all the FLOPs) run in bf16 under `torch.autocast`. On CPUs with
 avx512_bf16 or AMX a bf16 matmul of our shapes is 2-3x faster than fp32 (BENCHMARKS.md);
-without them torch emulates bf16 and it is slower, hence `auto` asks the hardware.
+without them torch emulates bf16 and it is slower, hence `auto` asks the hardware. On a
+CUDA GPU our networks are too small to keep it busy: a step is bound by launching ~100 small
+kernels, and autocast's casts add kernels, so bf16 trained 0.79-0.97x as fast as fp32 on an
+H200 at batch 256 to 4096 (BENCHMARKS.md) and `auto` is fp32 there.
 
 Under `lerobot-train`, accelerate wraps `policy.forward` in its own autocast only when the
 policy config has a `dtype` field or `use_amp` is set; `MurmConfig` has neither by default,
@@ -44,14 +47,12 @@ def _this_cpu_has_native_bf16() -> bool:
 
 
 def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
-    """The matmul dtype for `precision` on `device`: `auto` is bf16 on CUDA GPUs that support
-    it and on CPUs with native bf16, float32 elsewhere."""
+    """The matmul dtype for `precision` on `device`: `auto` is bf16 on CPUs with native bf16,
+    float32 elsewhere (GPUs included: launch-bound at these widths, see the module doc)."""
     if precision not in PRECISIONS:
         raise ValueError(f"unknown precision {precision!r}; choose one of {list(PRECISIONS)}")
     if precision == "auto":
-        native = {"cuda": torch.cuda.is_available() and torch.cuda.is_bf16_supported(),
-                  "cpu": cpu_has_native_bf16()}.get(device.type, False)
-        return torch.bfloat16 if native else torch.float32
+        return torch.bfloat16 if device.type == "cpu" and cpu_has_native_bf16() else torch.float32
     return torch.bfloat16 if precision == "bf16" else torch.float32
 
 

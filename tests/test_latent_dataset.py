@@ -3,7 +3,6 @@ LeRobotDataset and `lerobot-train`, the same transitions as `murm train`, Hub pu
 `lerobot-train` under `accelerate launch` with two processes."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -24,6 +23,9 @@ from lerobot_murm.vqvae.code_packing import unpack_codes
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_dataset import read_latent_caches
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run_command  # noqa: E402
+
 BIN = Path(sys.executable).parent
 CAMERAS = ["global", "adjacent"]
 LATENT_REPO = "local/latents"
@@ -31,19 +33,12 @@ TRAIN_ARGS = ["--policy.type=murm", "--policy.method=dropout", f"--policy.camera
               f"--dataset.repo_id={LATENT_REPO}", "--wandb.enable=false", "--batch_size=16", "--num_workers=0"]
 
 
-def run(args: list, cwd: Path, timeout: int = 600) -> str:
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
-    result = subprocess.run([str(a) for a in args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert result.returncode == 0, f"{args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
-    return result.stdout + result.stderr
-
-
 @pytest.fixture(scope="module")
 def latents(tiny_pipeline, tmp_path_factory) -> Path:
     """`murm encode --to-dataset` on the tiny demonstrations; the latent cache folder is beside it."""
     root, encoders = tiny_pipeline
     base = tmp_path_factory.mktemp("latents")
-    out = run([BIN / "murm", "encode", "--dataset", root, "--encoders", *(encoders / c for c in CAMERAS),
+    out = run_command([BIN / "murm", "encode", "--dataset", root, "--encoders", *(encoders / c for c in CAMERAS),
                "--cache-dir", base / "cache", "--to-dataset", base / "latents"], cwd=base)
     assert "latent dataset" in out and "600 frames" in out
     return base / "latents"
@@ -135,13 +130,13 @@ def test_both_trainers_draw_the_same_transitions(tiny_pipeline, latents):
 
 def test_lerobot_train_learns_from_the_latent_dataset_and_lerobot_eval_runs_its_checkpoint(tiny_pipeline, latents, tmp_path):
     encoders = tiny_pipeline[1]
-    log = run([BIN / "lerobot-train", *TRAIN_ARGS, f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}",
+    log = run_command([BIN / "lerobot-train", *TRAIN_ARGS, f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}",
                "--steps=4", "--save_freq=4", "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)
     assert "critic_loss" in log and "actor_loss" in log
     checkpoint = tmp_path / "run" / "checkpoints" / "last" / "pretrained_model"
     assert "observation.latent.global" in json.loads((checkpoint / "config.json").read_text())["input_features"]
     out = tmp_path / "eval"
-    run([BIN / "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=murm", "--env.task=place_in_box",
+    run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=murm", "--env.task=place_in_box",
          "--env.image_size=16", f"--env.cameras=[{','.join(CAMERAS)}]", "--eval.n_episodes=1", "--eval.batch_size=1",
          f"--output_dir={out}"], cwd=tmp_path)
     assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
@@ -151,7 +146,7 @@ def test_lerobot_train_under_accelerate_with_two_processes_saves_a_checkpoint(ti
     """Two data-parallel ranks on the CPU: accelerate's `--multi_gpu` starts them through torchrun
     (gloo when there is no GPU); `--cpu --num_processes 2` alone would start one process."""
     encoders = tiny_pipeline[1]
-    log = run([BIN / "accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
+    log = run_command([BIN / "accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
                "--mixed_precision", "no", "--dynamo_backend", "no", BIN / "lerobot-train", *TRAIN_ARGS,
                f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}", "--steps=3", "--save_freq=3",
                "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)

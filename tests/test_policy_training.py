@@ -15,6 +15,7 @@ import torch
 import yaml
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run_command  # noqa: E402
 from quiet import assert_quiet  # noqa: E402
 
 BIN = Path(sys.executable).parent
@@ -24,15 +25,8 @@ ENV_ARGS = ["--env.type=murm", "--env.task=place_in_box", "--env.image_size=16",
 pytestmark = pytest.mark.slow
 
 
-def run(args: list[str], cwd: Path, timeout: int = 600) -> str:
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
-    result = subprocess.run([str(a) for a in args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert result.returncode == 0, f"{args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
-    return result.stdout + result.stderr
-
-
 def lerobot_eval(checkpoint: Path, out: Path, *extra: str) -> dict:
-    run([BIN / "lerobot-eval", f"--policy.path={checkpoint}", *ENV_ARGS, "--eval.n_episodes=2", "--eval.batch_size=2",
+    run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", *ENV_ARGS, "--eval.n_episodes=2", "--eval.batch_size=2",
          f"--output_dir={out}", *extra], cwd=out.parent)
     return json.loads((out / "eval_info.json").read_text())["overall"]
 
@@ -50,7 +44,7 @@ def train_config(tiny_pipeline, tmp_path: Path, method: str, **fields) -> Path:
 
 def test_lerobot_train_evaluates_in_the_simulator_and_lerobot_eval_loads_its_checkpoint(tiny_pipeline, tmp_path):
     root, encoders = tiny_pipeline
-    log = run([
+    log = run_command([
         BIN / "lerobot-train", "--policy.type=murm", "--policy.method=dropout", f"--policy.cameras={CAMERAS}",
         f"--policy.encoder_dir={encoders}", "--dataset.repo_id=local/place_in_box", f"--dataset.root={root}",
         *ENV_ARGS, "--steps=4", "--batch_size=4", "--env_eval_freq=4", "--eval.n_episodes=1", "--eval.batch_size=1",
@@ -68,7 +62,7 @@ def test_lerobot_train_evaluates_in_the_simulator_and_lerobot_eval_loads_its_che
 def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resumes(tiny_pipeline, tmp_path):
     config = train_config(tiny_pipeline, tmp_path, "separated_q", steps=6, batch_size=32, log_every=2, eval_every=3,
                           eval_episodes=1, final_eval_episodes=2, eval_mask_p=[0.0, 0.5], eval_envs=1)
-    out = run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
+    out = run_command([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     assert "masking 50%: success" in out
     assert_quiet(out)
     run_dir = tmp_path / "run"
@@ -84,12 +78,12 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
 
     # a finished run is not redone; asked for more steps it resumes from the checkpoint (its
     # evaluation at 6 steps kept beside), asked for fewer it refuses in one line
-    assert "resuming" not in run([BIN / "murm", "train", "--config", config], cwd=tmp_path)
+    assert "resuming" not in run_command([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     state_file = run_dir / "checkpoints" / "last" / "training_state.pt"
     state = torch.load(state_file, weights_only=False)
     assert 0 < state["elapsed_s"] <= summary["wall_s"]
     torch.save(state | {"elapsed_s": 1000.0}, state_file)  # as if the first sitting had taken 1000 s
-    out = run([BIN / "murm", "train", "--config", config, "--steps=8"], cwd=tmp_path)
+    out = run_command([BIN / "murm", "train", "--config", config, "--steps=8"], cwd=tmp_path)
     assert "resuming from step 6" in out
     with (run_dir / "log.csv").open() as f:
         assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]

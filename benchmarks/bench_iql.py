@@ -188,34 +188,42 @@ def write_random_latent_dataset(folder: Path, cameras: list[str], episodes: int,
     return folder / "latents"
 
 
-def fast_cpu_s_per_step(policy: MurmPolicy, replay: LatentReplay, batch: int, steps: int) -> float:
-    """`murm train`'s loop (sample, forward, backward, Adam, Polyak) on `replay`: CPU seconds a step."""
+def fast_s_per_step(policy: MurmPolicy, replay: LatentReplay, batch: int, steps: int, device: torch.device) -> float:
+    """`murm train`'s loop (sample, forward, backward, Adam, Polyak) on `replay`: seconds a step,
+    CPU time on the CPU and wall time (synchronised) on a GPU."""
     optimizer = policy.config.get_optimizer_preset().build(policy.get_optim_params())
-    generator = torch.Generator().manual_seed(0)
-    start = time.process_time()
+    generator = torch.Generator(device=device).manual_seed(0)
+    clock = time.process_time if device.type == "cpu" else time.perf_counter
+    _sync(device)
+    start = clock()
     for _ in range(steps):
         loss, _ = policy.forward(transition_batch(replay, batch, generator))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         policy.update()
-    return (time.process_time() - start) / steps
+    _sync(device)
+    return (clock() - start) / steps
 
 
-def lerobot_train_cpu_s(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
-                        num_workers: int, threads: int | None) -> float:
-    """CPU seconds of a whole stock `lerobot-train --policy.type=murm` run on the latent dataset,
-    its data-loader workers included; `threads`: its torch threads (OMP_NUM_THREADS), as this
-    process's."""
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)} if threads else None
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+def lerobot_train_s(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
+                    num_workers: int, threads: int | None, device: torch.device) -> float:
+    """Seconds of a whole stock `lerobot-train --policy.type=murm` run on the latent dataset: on
+    the CPU its CPU time, data-loader workers included; on a GPU its wall time. `threads`: its
+    torch threads (OMP_NUM_THREADS), as this process's. Started as `python -m` (the console
+    script's own module), so it runs wherever this interpreter's packages are."""
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", **({"OMP_NUM_THREADS": str(threads)} if threads else {})}
+    before, start = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
     with tempfile.TemporaryDirectory() as out:
         subprocess.run([
-            str(Path(sys.executable).parent / "lerobot-train"), "--policy.type=murm", "--policy.method=separated_q",
+            sys.executable, "-m", "lerobot.scripts.lerobot_train", "--policy.type=murm", "--policy.method=separated_q",
             f"--policy.cameras=[{','.join(cameras)}]", f"--policy.encoder_dir={encoder_dir}", "--policy.epsilon=[2.0,2.0]",
-            "--dataset.repo_id=local/latents", f"--dataset.root={latents}", f"--batch_size={batch}", f"--steps={steps}",
-            "--save_checkpoint=false", f"--num_workers={num_workers}", f"--output_dir={out}/run", "--wandb.enable=false",
+            f"--policy.device={device.type}", "--dataset.repo_id=local/latents", f"--dataset.root={latents}",
+            f"--batch_size={batch}", f"--steps={steps}", "--save_checkpoint=false", f"--num_workers={num_workers}",
+            f"--output_dir={out}/run", "--wandb.enable=false",
         ], capture_output=True, check=True, env=env)
+    if device.type != "cpu":
+        return time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     return after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
@@ -259,31 +267,33 @@ def row_costs(episodes: int = 100, rows: int = 2000) -> None:
 
 
 def compare_trainers(batch: int, num_workers: int, repeats: int, threads: int | None, steps: int = 150,
-                     episodes: int = 1000) -> None:
-    """CPU time per update of murm train and of lerobot-train, alternately, on one latent dataset
+                     episodes: int = 1000, device: torch.device = torch.device("cpu")) -> None:
+    """Time per update of murm train and of lerobot-train, alternately, on one latent dataset
     (separated Q, two cameras). lerobot-train's per-step time is the difference between a run of
     `steps` + 10 and one of 10 updates, so its start (imports, loading the dataset) cancels out.
-    CPU time, not wall time: it does not depend on what else the machine runs, and on a machine
-    whose cores are busy (2 here) updates/s is inversely proportional to it."""
+    On the CPU it is CPU time, not wall time: it does not depend on what else the machine runs,
+    and on a machine whose cores are busy (2 here) updates/s is inversely proportional to it. On
+    a GPU it is wall time (the machine is assumed idle), which is what a GPU user waits for."""
     cameras = CAMERAS[:2]
+    unit = "CPU ms" if device.type == "cpu" else "wall ms"
     with tempfile.TemporaryDirectory() as folder:
         latents = write_random_latent_dataset(Path(folder), cameras, episodes)
         encoder_dir = Path(folder) / "vqvae"
         config = MurmConfig(method="separated_q", cameras=cameras, encoder_dir=str(encoder_dir), epsilon=[2.0, 2.0])
-        policy = build_policy(config, LeRobotDataset("local/latents", root=latents), torch.device("cpu")).train()
-        replay = replay_for_dataset(config, LeRobotDataset("local/latents", root=latents), None)
+        policy = build_policy(config, LeRobotDataset("local/latents", root=latents), device).train()
+        replay = replay_for_dataset(config, LeRobotDataset("local/latents", root=latents), None, device)
         fast, slow = [], []
         for _ in range(repeats):
-            fast.append(fast_cpu_s_per_step(policy, replay, batch, steps))
-            short = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, 10, num_workers, threads)
-            long = lerobot_train_cpu_s(latents, encoder_dir, cameras, batch, steps + 10, num_workers, threads)
+            fast.append(fast_s_per_step(policy, replay, batch, steps, device))
+            short = lerobot_train_s(latents, encoder_dir, cameras, batch, 10, num_workers, threads, device)
+            long = lerobot_train_s(latents, encoder_dir, cameras, batch, steps + 10, num_workers, threads, device)
             slow.append((long - short) / steps)
-            print(f"  CPU ms per update: murm train {1e3 * fast[-1]:.1f}, lerobot-train {1e3 * slow[-1]:.1f} "
+            print(f"  {unit} per update: murm train {1e3 * fast[-1]:.1f}, lerobot-train {1e3 * slow[-1]:.1f} "
                   f"(its start: {short:.1f} s)", flush=True)
     f, s = statistics.median(fast), statistics.median(slow)
-    print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, torch threads {torch.get_num_threads()}, "
-          f"lerobot-train --num_workers={num_workers}: "
-          f"CPU ms per update: murm train {1e3 * f:.1f}, lerobot-train {1e3 * s:.1f}")
+    print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, device {device}, torch threads "
+          f"{torch.get_num_threads()}, lerobot-train --num_workers={num_workers}: "
+          f"{unit} per update: murm train {1e3 * f:.1f}, lerobot-train {1e3 * s:.1f}")
     print(f"lerobot-train / murm train: {f / s:.2f}")
 
 
@@ -301,6 +311,7 @@ def main() -> None:
     parser.add_argument("--lerobot-train", action="store_true", help="also compare with lerobot-train")
     parser.add_argument("--lerobot-train-only", action="store_true", help="only compare with lerobot-train")
     parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train's --num_workers")
+    parser.add_argument("--episodes", type=int, default=1000, help="episodes of 100 frames in the latent dataset")
     parser.add_argument("--row-costs", action="store_true", help="only the per-row cost of LeRobot's loader")
     args = parser.parse_args()
     if args.threads:
@@ -308,7 +319,8 @@ def main() -> None:
     if args.row_costs:
         return row_costs()
     if args.lerobot_train_only:
-        return compare_trainers(args.batch_size, args.num_workers, args.repeats, args.threads, args.steps)
+        return compare_trainers(args.batch_size, args.num_workers, args.repeats, args.threads, args.steps,
+                                args.episodes, torch.device(args.device))
     device = torch.device(args.device)
     cases = [(m, int(n)) for m, n in (c.split(":") for c in args.cases)] if args.cases else CASES
     widths = list(WIDTHS) if args.widths == "both" else [args.widths]
@@ -349,7 +361,8 @@ def main() -> None:
             if n > 1:
                 print(f"  {method} with {n} cameras: {single / r['default']['steps_per_s']:.2f}")
     if args.lerobot_train:
-        compare_trainers(args.batch_size, args.num_workers, args.repeats)
+        compare_trainers(args.batch_size, args.num_workers, args.repeats, args.threads, episodes=args.episodes,
+                         device=device)
 
 
 if __name__ == "__main__":

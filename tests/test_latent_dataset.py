@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import run_command  # noqa: E402
 
 BIN = Path(sys.executable).parent
+SCRIPTS = Path(__file__).parents[1] / "scripts"
 CAMERAS = ["global", "adjacent"]
 LATENT_REPO = "local/latents"
 TRAIN_ARGS = ["--policy.type=murm", "--policy.method=dropout", f"--policy.cameras=[{','.join(CAMERAS)}]",
@@ -128,18 +129,44 @@ def test_both_trainers_draw_the_same_transitions(tiny_pipeline, latents):
     assert slow_offsets.min() >= 1 and fast_offsets.min() >= 1
 
 
-def test_lerobot_train_learns_from_the_latent_dataset_and_lerobot_eval_runs_its_checkpoint(tiny_pipeline, latents, tmp_path):
-    encoders = tiny_pipeline[1]
-    log = run_command([BIN / "lerobot-train", *TRAIN_ARGS, f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}",
-               "--steps=4", "--save_freq=4", "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)
+@pytest.fixture(scope="module")
+def lerobot_trained(tiny_pipeline, latents, tmp_path_factory) -> tuple[str, Path]:
+    """(the log, the checkpoint) of a short stock `lerobot-train` run on the latent dataset."""
+    base = tmp_path_factory.mktemp("lerobot_train")
+    log = run_command([BIN / "lerobot-train", *TRAIN_ARGS, f"--policy.encoder_dir={tiny_pipeline[1]}",
+                       f"--dataset.root={latents}", "--steps=4", "--save_freq=4", "--log_freq=1",
+                       f"--output_dir={base / 'run'}"], cwd=base)
+    return log, base / "run" / "checkpoints" / "last" / "pretrained_model"
+
+
+def test_lerobot_train_learns_from_the_latent_dataset_and_lerobot_eval_runs_its_checkpoint(lerobot_trained, tmp_path):
+    log, checkpoint = lerobot_trained
     assert "critic_loss" in log and "actor_loss" in log
-    checkpoint = tmp_path / "run" / "checkpoints" / "last" / "pretrained_model"
     assert "observation.latent.global" in json.loads((checkpoint / "config.json").read_text())["input_features"]
     out = tmp_path / "eval"
     run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=murm", "--env.task=place_in_box",
          "--env.image_size=16", f"--env.cameras=[{','.join(CAMERAS)}]", "--eval.n_episodes=1", "--eval.batch_size=1",
          f"--output_dir={out}"], cwd=tmp_path)
     assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
+
+
+def test_rollout_strip_draws_each_checkpoint_on_the_same_episode(lerobot_trained, tmp_path):
+    from PIL import Image
+
+    checkpoint = lerobot_trained[1]
+    out = tmp_path / "strip.png"
+    printed = run_command([sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--image-size", "16",
+                           "--steps", "0", "50", "99", "--policy", f"first=mine={checkpoint}",
+                           "--policy", f"second={checkpoint}", "--out", out], cwd=tmp_path)
+    assert "first=mine: " in printed and "second: " in printed  # a label may hold "="
+    strip = np.asarray(Image.open(out).convert("RGB"))
+    assert strip.shape == (2 * (256 + 18), 3 * 256, 3)
+    first, second = strip[18:274], strip[274 + 18:]
+    np.testing.assert_array_equal(first, second)  # one policy, one episode seed: the same frames
+    assert not np.array_equal(first[:, :256], first[:, 512:])  # the scene changes over the episode
+    bad = subprocess.run([sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--policy",
+                          f"x={tmp_path}", "--out", out], capture_output=True, text=True)
+    assert bad.returncode != 0 and "expected LABEL=CHECKPOINT" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_lerobot_train_under_accelerate_with_two_processes_saves_a_checkpoint(tiny_pipeline, latents, tmp_path):

@@ -36,12 +36,14 @@ def rollout_frames(checkpoint: Path, task: str, seed: int, steps: list[int],
     """The overview frames at `steps` of one `lerobot-eval` episode, and whether it succeeded."""
     cameras = json.loads((checkpoint / "config.json").read_text())["cameras"]
     with tempfile.TemporaryDirectory() as out:
-        subprocess.run([
+        evaluated = subprocess.run([
             str(Path(sys.executable).parent / "lerobot-eval"), f"--policy.path={checkpoint}", "--env.type=murm",
             f"--env.task={task}", f"--env.cameras=[{','.join(cameras)}]", f"--env.image_size={image_size}",
-            "--eval.n_episodes=1",
-            "--eval.batch_size=1", f"--seed={seed}", f"--output_dir={out}",
-        ], check=True, capture_output=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+            "--eval.n_episodes=1", "--eval.batch_size=1", f"--seed={seed}", f"--output_dir={out}",
+        ], capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        if evaluated.returncode != 0:
+            last = (evaluated.stderr.strip().splitlines() or ["(no output)"])[-1]
+            sys.exit(f"rollout_strip: lerobot-eval failed on {checkpoint}: {last}")
         overall = json.loads((Path(out) / "eval_info.json").read_text())["overall"]
         with av.open(overall["video_paths"][0]) as container:
             frames = [frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)]

@@ -40,7 +40,7 @@ def latents(tiny_pipeline, tmp_path_factory) -> Path:
     root, encoders = tiny_pipeline
     base = tmp_path_factory.mktemp("latents")
     out = run_command([BIN / "murm", "encode", "--dataset", root, "--encoders", *(encoders / c for c in CAMERAS),
-               "--cache-dir", base / "cache", "--to-dataset", base / "latents"], cwd=base)
+                       "--cache-dir", base / "cache", "--to-dataset", base / "latents"], cwd=base)
     assert "latent dataset" in out and "600 frames" in out
     return base / "latents"
 
@@ -145,8 +145,8 @@ def test_lerobot_train_learns_from_the_latent_dataset_and_lerobot_eval_runs_its_
     assert "observation.latent.global" in json.loads((checkpoint / "config.json").read_text())["input_features"]
     out = tmp_path / "eval"
     run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=murm", "--env.task=place_in_box",
-         "--env.image_size=16", f"--env.cameras=[{','.join(CAMERAS)}]", "--eval.n_episodes=1", "--eval.batch_size=1",
-         f"--output_dir={out}"], cwd=tmp_path)
+                 "--env.image_size=16", f"--env.cameras=[{','.join(CAMERAS)}]", "--eval.n_episodes=1",
+                 "--eval.batch_size=1", f"--output_dir={out}"], cwd=tmp_path)
     assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
 
 
@@ -165,8 +165,14 @@ def test_rollout_strip_draws_each_checkpoint_on_the_same_episode(lerobot_trained
     np.testing.assert_array_equal(first, second)  # one policy, one episode seed: the same frames
     assert not np.array_equal(first[:, :256], first[:, 512:])  # the scene changes over the episode
     bad = subprocess.run([sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--policy",
-                          f"x={tmp_path}", "--out", out], capture_output=True, text=True)
+                          f"x={tmp_path}", "--out", out], capture_output=True, text=True, timeout=120)
     assert bad.returncode != 0 and "expected LABEL=CHECKPOINT" in bad.stderr and "Traceback" not in bad.stderr
+    (tmp_path / "not_a_policy").mkdir()
+    (tmp_path / "not_a_policy" / "config.json").write_text('{"cameras": ["global"]}')
+    bad = subprocess.run([sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--policy",
+                          f"x={tmp_path / 'not_a_policy'}", "--out", out], capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "Traceback" not in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1 and bad.stderr.startswith("rollout_strip: lerobot-eval failed on ")
 
 
 def test_lerobot_train_under_accelerate_with_two_processes_saves_a_checkpoint(tiny_pipeline, latents, tmp_path):
@@ -174,9 +180,9 @@ def test_lerobot_train_under_accelerate_with_two_processes_saves_a_checkpoint(ti
     (gloo when there is no GPU); `--cpu --num_processes 2` alone would start one process."""
     encoders = tiny_pipeline[1]
     log = run_command([BIN / "accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
-               "--mixed_precision", "no", "--dynamo_backend", "no", BIN / "lerobot-train", *TRAIN_ARGS,
-               f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}", "--steps=3", "--save_freq=3",
-               "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)
+                       "--mixed_precision", "no", "--dynamo_backend", "no", BIN / "lerobot-train", *TRAIN_ARGS,
+                       f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}", "--steps=3", "--save_freq=3",
+                       "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)
     assert "critic_loss" in log and "Effective batch size: 16 x 2 = 32" in log
     checkpoint = tmp_path / "run" / "checkpoints" / "000003"
     assert (checkpoint / "pretrained_model" / "model.safetensors").exists()

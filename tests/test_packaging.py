@@ -46,15 +46,16 @@ def installed(tmp_path_factory) -> tuple[Path, dict]:
         else:
             shutil.copy2(REPO / name, sources / name)
     run_command([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index", "-q",
-         "-w", base / "dist", sources], cwd=base)
+                 "-w", base / "dist", sources], cwd=base)
     (wheel,) = (base / "dist").glob("lerobot_policy_murm-*.whl")
     assert CARD_TEMPLATE in zipfile.ZipFile(wheel).namelist()
 
     venv = base / "venv"
     run_command([sys.executable, "-m", "venv", "--without-pip", venv], cwd=base)
-    run_command([sys.executable, "-m", "pip", "--python", venv / "bin" / "python", "install", "--no-deps", "--no-index", "-q",
-         wheel], cwd=base)
-    purelib = run_command([venv / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], base)
+    run_command([sys.executable, "-m", "pip", "--python", venv / "bin" / "python", "install", "--no-deps",
+                 "--no-index", "-q", wheel], cwd=base)
+    purelib = run_command([venv / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+                          base)
     (Path(purelib.strip()) / "test_dependencies.pth").write_text(sysconfig.get_path("purelib") + "\n")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"HF_HUB_OFFLINE": "1"}
     return venv, env
@@ -70,8 +71,8 @@ def test_the_wheel_brings_its_own_code_and_card_template(installed, tmp_path):
 
 def test_the_installed_murm_collects_quietly_and_pushes_the_dataset_with_its_card(installed, tmp_path):
     venv, env = installed
-    out = run_command([venv / "bin" / "murm", "collect", "--task", "pick_up", "--root", tmp_path / "ds", "--episodes", "2",
-               "--workers", "1", "--cameras", "side", "--image-size", "16"], tmp_path, env)
+    out = run_command([venv / "bin" / "murm", "collect", "--task", "pick_up", "--root", tmp_path / "ds", "--episodes",
+                       "2", "--workers", "1", "--cameras", "side", "--image-size", "16"], tmp_path, env)
     assert "2 episodes in" in out
     assert_quiet(out)  # a first run from a fresh install
 
@@ -100,7 +101,7 @@ def test_lerobot_eval_in_the_installed_environment_loads_a_murm_checkpoint(insta
     for part in (policy, *make_murm_pre_post_processors(policy.config)):  # what `murm train` saves
         part.save_pretrained(tmp_path / "ckpt")
     run_command([venv / "bin" / "python", "-m", "lerobot.scripts.lerobot_eval", f"--policy.path={tmp_path / 'ckpt'}",
-         "--env.type=murm", "--env.task=place_in_box", "--env.image_size=16", "--env.cameras=[global]",
-         "--eval.n_episodes=1", "--eval.batch_size=1", f"--output_dir={tmp_path / 'eval'}"], tmp_path, env)
+                 "--env.type=murm", "--env.task=place_in_box", "--env.image_size=16", "--env.cameras=[global]",
+                 "--eval.n_episodes=1", "--eval.batch_size=1", f"--output_dir={tmp_path / 'eval'}"], tmp_path, env)
     overall = json.loads((tmp_path / "eval" / "eval_info.json").read_text())["overall"]
     assert overall["n_episodes"] == 1

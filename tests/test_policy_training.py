@@ -26,8 +26,8 @@ pytestmark = pytest.mark.slow
 
 
 def lerobot_eval(checkpoint: Path, out: Path, *extra: str) -> dict:
-    run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", *ENV_ARGS, "--eval.n_episodes=2", "--eval.batch_size=2",
-         f"--output_dir={out}", *extra], cwd=out.parent)
+    run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", *ENV_ARGS, "--eval.n_episodes=2",
+                 "--eval.batch_size=2", f"--output_dir={out}", *extra], cwd=out.parent)
     return json.loads((out / "eval_info.json").read_text())["overall"]
 
 

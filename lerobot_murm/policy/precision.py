@@ -5,7 +5,7 @@ of the hidden layers (nearly all the FLOPs) run in bf16 under `torch.autocast`. 
 avx512_bf16 or AMX a bf16 matmul of our shapes is 2-3x faster than fp32 (BENCHMARKS.md);
 without them torch emulates bf16 and it is slower, hence `auto` asks the hardware. On a
 CUDA GPU our networks are too small to keep it busy: a step is bound by launching ~100 small
-kernels, and autocast's casts add kernels, so bf16 trained 0.79-0.97x as fast as fp32 on an
+kernels, and autocast's casts add kernels, so bf16 trained 0.79-1.00x as fast as fp32 on an
 H200 at batch 256 to 4096 (BENCHMARKS.md) and `auto` is fp32 there.
 
 Under `lerobot-train`, accelerate wraps `policy.forward` in its own autocast only when the

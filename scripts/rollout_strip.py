@@ -86,7 +86,9 @@ def main() -> None:
         rows.append((f"{label}: episode seed {args.seed}, steps {steps}, {'success' if success else 'failure'}", frames))
         print(f"{label}: {'success' if success else 'failure'}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    strip(rows).save(args.out)
+    partial = args.out.with_name(f".{args.out.name}.partial")
+    strip(rows).save(partial, format="PNG")
+    partial.replace(args.out)  # a kill while saving leaves the picture that was there whole
     print(f"wrote {args.out}")
 
 

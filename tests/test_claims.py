@@ -4,8 +4,9 @@ import csv
 import shutil
 from pathlib import Path
 
-from lerobot_murm.experiments.claims import claims_table, judge_claims
+from lerobot_murm.experiments.claims import Verdict, claims_table, judge_claims
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+from lerobot_murm.experiments.paper import TABLE5
 from lerobot_murm.experiments.report import update_readme, write_report
 from lerobot_murm.experiments.results import COLUMNS, aggregate
 
@@ -43,6 +44,11 @@ def table4(results: Path, separated_q_masked: dict[str, float], tasks=TASKS) -> 
 
 def verdicts(results: Path) -> dict[str, str]:
     return {v.claim.text: v.verdict for v in judge_claims(results)}
+
+
+def verdict_of(results: Path, claim: str) -> Verdict:
+    """One claim's verdict with its evidence."""
+    return next(v for v in judge_claims(results) if v.claim.text == claim)
 
 
 def test_table4_claims_are_judged_per_task_and_combined(tmp_path):
@@ -110,7 +116,6 @@ def test_the_report_and_readme_show_the_claims_with_their_numbers(tmp_path):
     assert "How each verdict is decided" in claims_table(tmp_path / "results")
 
 
-
 def test_every_claim_is_judged_once_the_table_grids_have_run(tmp_path):
     """The claims read cells by label: every label they need is one the grids' configs make,
     so no claim stays 'not run yet' once `configs/reproduce/table1-7.yaml` have run."""
@@ -127,17 +132,15 @@ def test_every_claim_is_judged_once_the_table_grids_have_run(tmp_path):
     assert all(v in ("holds", "partly", "does not hold") for v in judged.values()), judged
 
 
-TABLE5_CELLS = ("single-global", "dropout-global+adjacent", "separated_q-global+adjacent",
-                "dropout-global+adjacent+top", "separated_q-global+adjacent+top")
 TIME_CLAIM = "dropout trains in about the single view's time (1.05x), separated Q in about 1.5x, " \
              "and each added view costs about 0.5x more"
 
 
 def test_table5_compares_the_time_per_update_with_the_papers_ratios(tmp_path):
-    def verdict(*ratios: float) -> str:
-        speeds = {cell: 100.0 / ratio for cell, ratio in zip(TABLE5_CELLS, (1.0, *ratios), strict=True)}
-        write_table(tmp_path, "table5", [("place_in_box", cell, 0.0, 50.0, None, 1) for cell in TABLE5_CELLS], speeds)
-        return {v.claim.text: v for v in judge_claims(tmp_path)}[TIME_CLAIM]
+    def verdict(*ratios: float) -> Verdict:
+        speeds = {cell: 100.0 / ratio for cell, ratio in zip(TABLE5, (1.0, *ratios), strict=True)}
+        write_table(tmp_path, "table5", [("place_in_box", cell, 0.0, 50.0, None, 1) for cell in TABLE5], speeds)
+        return verdict_of(tmp_path, TIME_CLAIM)
 
     assert verdict(1.1, 1.5, 1.6, 2.0).verdict == "holds"  # each within 0.25 of 1.05 / 1.55 / 1.51 / 2.05
     found = verdict(2.0, 3.0, 2.5, 4.0)  # the paper's order, our costs
@@ -170,5 +173,5 @@ def test_table7_the_fully_noisy_cell_is_the_1000_demonstrations_one(tmp_path):
     demonstrations_table(tmp_path, demos | {"demos1000": 40.0, "noisy0": 20.0, "noisy25": 25.0, "noisy50": 30.0})
     assert verdicts(tmp_path)[claim] == "holds"
     demonstrations_table(tmp_path, demos | {"demos1000": 40.0, "noisy0": 70.0, "noisy25": 25.0, "noisy50": 30.0})
-    found = {v.claim.text: v for v in judge_claims(tmp_path)}[claim]
+    found = verdict_of(tmp_path, claim)
     assert found.verdict == "does not hold" and "noisy100 40 ± 4" in found.evidence

@@ -162,6 +162,34 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
     assert finished_elsewhere(table4, recipe, [0.0]) is None  # a grid does not reuse itself
 
 
+def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuses_none_of_them(tmp_path):
+    from lerobot_murm.experiments.reproduce import finished_elsewhere, kept_as_finished, run_recipe
+
+    table4 = load_reproduce_config(REPO / "configs/reproduce/table4.yaml", [f"--results_dir={tmp_path}"])
+    table3 = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", [f"--results_dir={tmp_path}"])
+    single = table4.cells[0]
+    recipe = run_recipe(table4, "place_in_box", single, 0)
+    other = "torch.float32" if recipe["precision"] == "torch.bfloat16" else "torch.bfloat16"
+    on_another_machine = recipe | {"precision": other}  # a bf16 CPU's run read back on one without, or back
+    assert kept_as_finished(recipe, recipe, single) and kept_as_finished(on_another_machine, recipe, single)
+    assert not kept_as_finished(on_another_machine | {"train": recipe["train"] | {"steps": 1}}, recipe, single)
+    for asked in ("fp32", "bf16"):  # a cell that asks for a precision trains again in it
+        cell = replace(single, policy={"precision": asked})
+        own = run_recipe(table4, "place_in_box", cell, 0)
+        flipped = own | {"precision": "torch.bfloat16" if asked == "fp32" else "torch.float32"}
+        assert kept_as_finished(own, own, cell) and not kept_as_finished(flipped, own, cell)
+
+    # another grid takes only a run of the very same recipe, precision included
+    runs = tmp_path / "table4" / "runs"
+    runs.mkdir(parents=True)
+    final = [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}]
+    stored = {"final": final, "curve": [], "validation_seeds": [200_000, 200_099], "recipe": on_another_machine}
+    (runs / "place_in_box__single-global__seed0.json").write_text(json.dumps(stored))
+    assert finished_elsewhere(table3, recipe, [0.0]) is None
+    (runs / "place_in_box__single-global__seed0.json").write_text(json.dumps(stored | {"recipe": recipe}))
+    assert finished_elsewhere(table3, recipe, [0.0])["reused_from"] == "table4/place_in_box__single-global__seed0"
+
+
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_experiment_config_parses(path):
     config = load_reproduce_config(path)

@@ -196,6 +196,18 @@ def same_recipe(stored: dict | None, recipe: dict) -> bool:
     return stored | {"policy": policy_overrides(stored["method"], stored["cameras"], stored["policy"])} == recipe
 
 
+def kept_as_finished(stored: dict | None, recipe: dict, cell: CellSpec) -> bool:
+    """Whether a grid's stored run stands as its cell's finished run: trained by the cell's
+    recipe, or by it on a machine where `precision: auto` resolved otherwise (bf16 on CPUs
+    with native bf16, fp32 elsewhere; the `precision` grid found no difference beyond the
+    seeds' spread). Without this a grid moved to another machine would set aside and train
+    again every run it has. Each run records its precision; another grid's runs are taken
+    only for the very same recipe (`finished_elsewhere`)."""
+    if stored is None or same_recipe(stored, recipe):  # None: an earlier setting's run, kept as it is
+        return True
+    return "precision" not in cell.policy and same_recipe(stored | {"precision": recipe["precision"]}, recipe)
+
+
 def set_aside(path: Path) -> Path:
     """Move a result its cell no longer produces to `runs/superseded/` (kept, never overwritten)."""
     folder = path.parent / "superseded"
@@ -344,8 +356,7 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     for task, cell, seed in grid:
         path, recipe = result_path(config, task, cell, seed), run_recipe(config, task, cell, seed)
         if path.exists():
-            stored = json.loads(path.read_text()).get("recipe")
-            if stored is None or same_recipe(stored, recipe):  # None: an earlier setting's run, kept as it is
+            if kept_as_finished(json.loads(path.read_text()).get("recipe"), recipe, cell):
                 continue
             print(f"{path.name}: its cell changed since it ran (set aside in {set_aside(path).parent}); "
                   "it trains again, from its checkpoint where the change allows", flush=True)

@@ -9,7 +9,7 @@ import torch
 
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.modeling_murm import ACTION, DONE, NEXT_STATE, REWARD, STATE, MurmPolicy
-from lerobot_murm.policy.precision import cpu_has_native_bf16, resolve_precision
+from lerobot_murm.policy.precision import cpu_description, cpu_has_native_bf16, resolve_precision
 from lerobot_murm.vqvae import VQVAEConfig
 
 CAMERAS = ["global", "adjacent"]
@@ -73,6 +73,15 @@ def test_auto_picks_bf16_only_where_it_trains_faster():
     assert resolve_precision("auto", torch.device("cuda")) == torch.float32  # launch-bound: bf16 measured slower
     with pytest.raises(ValueError, match="unknown precision 'fp16'"):
         make_policy(precision="fp16")
+
+
+def test_a_runs_record_tells_cpus_of_one_brand_apart_by_family_model_and_bf16():
+    zen3 = "processor\t: 0\nmodel name\t: AMD EPYC\ncpu family\t: 25\nmodel\t\t: 1\nflags\t\t: fpu avx2\n"
+    zen4 = zen3.replace("model\t\t: 1", "model\t\t: 17").replace("avx2", "avx2 avx512f avx512_bf16")
+    assert cpu_description(zen3) == "AMD EPYC, family 25 model 1, no native bf16"
+    assert cpu_description(zen4) == "AMD EPYC, family 25 model 17, native bf16"
+    assert cpu_description(zen3 + zen3.replace("processor\t: 0", "processor\t: 1")) == cpu_description(zen3)
+    assert cpu_description(XEON_AMX_FLAGS).endswith(", native bf16")  # no model lines: the machine's arch
 
 
 @pytest.mark.parametrize("method", ["concat", "separated_q"])

@@ -16,7 +16,6 @@ or a Ray cluster).
 from __future__ import annotations
 
 import json
-import platform
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -38,7 +37,7 @@ from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
-from lerobot_murm.policy.precision import resolve_precision
+from lerobot_murm.policy.precision import cpu_description, resolve_precision
 from lerobot_murm.policy.train import TrainConfig, train
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
@@ -176,8 +175,10 @@ def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, 
 
 
 def hardware() -> str:
+    """What a run trained on, for the run list: the CPU (with or without native bf16), torch
+    threads and any GPU. Grids run over several sittings, not always on one kind of machine."""
     gpu = f", {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""
-    return f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads{gpu}"
+    return f"{cpu_description()}, {torch.get_num_threads()} torch threads{gpu}"
 
 
 def policy_overrides(method: str, cameras: list[str], policy: dict) -> dict:

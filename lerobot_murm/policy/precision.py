@@ -17,6 +17,7 @@ autocast overrides an outer one), and both trainers take the same path.
 from __future__ import annotations
 
 import functools
+import platform
 from pathlib import Path
 
 import torch
@@ -36,6 +37,24 @@ def cpu_has_native_bf16(cpuinfo: str | None = None) -> bool:
         return _this_cpu_has_native_bf16()
     flags = {word for line in cpuinfo.splitlines() if line.startswith("flags") for word in line.split()}
     return bool(flags & NATIVE_BF16_CPU_FLAGS)
+
+
+def cpu_description(cpuinfo: str | None = None) -> str:
+    """The CPU as a run's record names it: its model name, family and model (a cloud CPU's
+    name is often only its brand: "AMD EPYC" is Zen 3 without bf16 and Zen 4 with it), and
+    whether it has native bf16, which decides what `precision: auto` trains in and how fast."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            return platform.processor() or platform.machine()
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    name = fields.get("model name") or platform.machine()
+    family = f", family {fields['cpu family']} model {fields['model']}" if {"cpu family", "model"} <= fields.keys() else ""
+    return f"{name}{family}, {'native' if cpu_has_native_bf16(cpuinfo) else 'no native'} bf16"
 
 
 @functools.cache

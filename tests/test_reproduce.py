@@ -5,6 +5,7 @@ import csv
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
@@ -98,16 +99,28 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert (tmp_path / "work" / "runs" / "timed").exists()
     assert "reused_from" not in json.loads((tmp_path / "results/timed/runs/place_in_box__single-global__seed0.json").read_text())
 
+    # the encoders are kept beside the results: with the work dir's encoders gone (a fresh machine), the
+    # next grid copies them back instead of training another draw, and its runs record the same weights
+    original = json.loads((results / "runs/place_in_box__single-global__seed0.json").read_text())
+    kept = tmp_path / "results" / "encoders"
+    assert sorted(p.name for p in kept.glob("*/*")) == ["adjacent", "global"]
+    assert set(original["encoders"]) == {"global"} and len(original["encoders"]["global"]) == 16
+    shutil.rmtree(tmp_path / "work" / "vqvae")
+
     # a cell with other demonstrations (Table 7) collects them but encodes them with the task's encoders
     fewer = tmp_path / "fewer.yaml"
     fewer.write_text(yaml.safe_dump(smoke | {"name": "fewer", "cells": [single | {"episodes": 3, "label": "demos3",
                                                                             "steps": 30}]}))
     murm(["reproduce", "--config", str(fewer), *args[3:]], tmp_path)
+    encoder = next(kept.glob("*/global"))  # copied back, not trained again (a new training has its own train_seconds)
+    assert (tmp_path / "work" / "vqvae" / encoder.parent.name / "global" / "metrics.json").read_text() == \
+        (encoder / "metrics.json").read_text()
     datasets = sorted(p.name for p in (tmp_path / "work" / "datasets").iterdir())
     assert len(datasets) == 2 and any("-3ep-" in name for name in datasets)
     assert len(list((tmp_path / "work" / "vqvae").iterdir())) == 1  # no second set of encoders
     run = json.loads((tmp_path / "results/fewer/runs/place_in_box__demos3__seed0.json").read_text())
     assert "-3ep-" in run["dataset"] and run["recipe"]["encoder_dataset"] == original["dataset"]
+    assert run["encoders"] == original["encoders"]
     assert run["steps"] == run["recipe"]["train"]["steps"] == 30  # the cell's own update count
 
     # the cell changes (more updates): its stored result is set aside, not lost, and the run
@@ -147,19 +160,25 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
     assert run_recipe(table4, "place_in_box", replace(table4.cells[3], steps=table4.train.steps), 0) == default
 
     final = [{"mask_p": p, "success_rate": 0.5, "episodes": 100} for p in (0.0, 0.1)]
-    stored = {"final": final, "curve": [[5000, 0.0, 0.4], [5000, 0.1, 0.3]], "recipe": recipe}
+    encoders = {"global": "0123456789abcdef"}
+    stored = {"final": final, "curve": [[5000, 0.0, 0.4], [5000, 0.1, 0.3]], "recipe": recipe, "encoders": encoders}
     (tmp_path / "table4" / "runs").mkdir(parents=True)
     earlier_setting = tmp_path / "table4" / "runs" / "pick_up__single-global__seed1.json"
     earlier_setting.write_text(json.dumps(stored))
-    assert finished_elsewhere(table3, recipe, [0.0]) is None  # no validation seeds: chosen on its test seeds
+    assert finished_elsewhere(table3, recipe, [0.0], encoders) is None  # no validation seeds: chosen on its test seeds
     stored["validation_seeds"] = [200_000, 200_099]
     earlier_setting.write_text(json.dumps(stored))
-    found = finished_elsewhere(table3, recipe, [0.0])
+    found = finished_elsewhere(table3, recipe, [0.0], encoders)
     assert found["final"] == final[:1] and found["curve"] == [[5000, 0.0, 0.4]]
     assert found["reused_from"] == "table4/pick_up__single-global__seed1"
-    assert finished_elsewhere(table3, recipe, [0.0, 0.5]) is None  # never evaluated with 50 % masking
-    assert finished_elsewhere(table3, run_recipe(table3, "pick_up", single3, 2), [0.0]) is None
-    assert finished_elsewhere(table4, recipe, [0.0]) is None  # a grid does not reuse itself
+    assert finished_elsewhere(table3, recipe, [0.0, 0.5], encoders) is None  # never evaluated with 50 % masking
+    assert finished_elsewhere(table3, run_recipe(table3, "pick_up", single3, 2), [0.0], encoders) is None
+    assert finished_elsewhere(table4, recipe, [0.0], encoders) is None  # a grid does not reuse itself
+    # trained on other encoders (another draw of the same recipe), on unknown ones, or none trained yet here
+    assert finished_elsewhere(table3, recipe, [0.0], {"global": "fedcba9876543210"}) is None
+    assert finished_elsewhere(table3, recipe, [0.0], None) is None
+    earlier_setting.write_text(json.dumps({k: v for k, v in stored.items() if k != "encoders"}))
+    assert finished_elsewhere(table3, recipe, [0.0], encoders) is None
 
 
 def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuses_none_of_them(tmp_path):
@@ -183,11 +202,14 @@ def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuse
     runs = tmp_path / "table4" / "runs"
     runs.mkdir(parents=True)
     final = [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}]
-    stored = {"final": final, "curve": [], "validation_seeds": [200_000, 200_099], "recipe": on_another_machine}
+    encoders = {"global": "0123456789abcdef"}
+    stored = {"final": final, "curve": [], "validation_seeds": [200_000, 200_099], "recipe": on_another_machine,
+              "encoders": encoders}
     (runs / "place_in_box__single-global__seed0.json").write_text(json.dumps(stored))
-    assert finished_elsewhere(table3, recipe, [0.0]) is None
+    assert finished_elsewhere(table3, recipe, [0.0], encoders) is None
     (runs / "place_in_box__single-global__seed0.json").write_text(json.dumps(stored | {"recipe": recipe}))
-    assert finished_elsewhere(table3, recipe, [0.0])["reused_from"] == "table4/place_in_box__single-global__seed0"
+    found = finished_elsewhere(table3, recipe, [0.0], encoders)
+    assert found["reused_from"] == "table4/place_in_box__single-global__seed0"
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)

@@ -7,7 +7,9 @@ training run by its cell and seed (a half-finished run resumes from its checkpoi
 Each finished run writes a small JSON file under `results/<name>/runs/`; a rerun skips
 those, so a long grid runs in as many sittings as it takes. A run another grid already
 finished with the same recipe (Table 3's global camera is Table 4's single-view
-baseline) is taken from there instead of trained again. Missing pieces are rebuilt
+baseline) is taken from there instead of trained again, when it was trained on the very
+same encoders: the encoders a grid trains are kept beside the results (`results/encoders/`,
+committed), since a VQ-VAE trained again on another machine is another draw. Missing pieces are rebuilt
 deterministically from their seeds, in stages (datasets, encoders, runs) whose jobs run
 side by side on an executor (`executors.py`: this process, `--jobs N` local processes,
 or a Ray cluster).
@@ -15,7 +17,9 @@ or a Ray cluster).
 
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -103,6 +107,65 @@ def encoder_root(config: ReproduceConfig, task: str) -> Path:
     experiment's states and goals with it (4.3); Table 7 varies what the policy learns from,
     not the encoders."""
     return dataset_root(config, task)
+
+
+# an encoder's files, `metrics.json` (what `encoder_is_finished` reads) copied last
+ENCODER_FILES = ("config.json", "model.safetensors", "latent_distance.json", OBJECT_PIXELS_FILE, "metrics.json")
+
+
+def kept_encoder_dir(config: ReproduceConfig, root: Path) -> Path:
+    """Where a grid keeps the encoders it trained, beside its results (committed): a later
+    sitting on a fresh machine encodes with the very same weights. A VQ-VAE trained again on
+    another CPU is another draw (its latents and suggested epsilon differ), which would make
+    the cells of one table differ by more than their recipes."""
+    return Path(config.results_dir) / "encoders" / encoder_dir(config, root).name
+
+
+def copy_encoder(source: Path, target: Path) -> None:
+    target.mkdir(parents=True, exist_ok=True)
+    for name in ENCODER_FILES:
+        if (source / name).exists():
+            shutil.copyfile(source / name, target / f".{name}.partial")
+            (target / f".{name}.partial").replace(target / name)
+
+
+def encoder_fingerprint(folder: Path) -> str | None:
+    """The first 16 hex digits of the weights' sha256; None where there is no encoder."""
+    path = folder / "model.safetensors"
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.exists() else None
+
+
+def fetch_kept_encoders(config: ReproduceConfig, encoders: list[tuple[Path, str]]) -> None:
+    """Into the work dir, each kept encoder that is not trained there (before `ensure_encoder`)."""
+    for root, camera in encoders:
+        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
+        out, kept = encoder_dir(config, root) / camera, kept_encoder_dir(config, root) / camera
+        if not encoder_is_finished(out, steps) and encoder_is_finished(kept, steps):
+            copy_encoder(kept, out)
+
+
+def keep_encoders(config: ReproduceConfig, encoders: list[tuple[Path, str]]) -> None:
+    """Beside the results, each finished encoder of the work dir not kept there yet (a kept
+    encoder is never replaced: the runs that record its fingerprint were trained on it)."""
+    for root, camera in encoders:
+        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
+        out, kept = encoder_dir(config, root) / camera, kept_encoder_dir(config, root) / camera
+        if encoder_is_finished(out, steps) and not encoder_is_finished(kept, steps):
+            copy_encoder(out, kept)
+
+
+def current_encoders(config: ReproduceConfig, task: str, cameras: list[str]) -> dict[str, str] | None:
+    """The fingerprints of the encoders a run of `task` on `cameras` would encode with now
+    (the work dir's, else the kept ones); None while one of them is yet to be trained."""
+    root, found = encoder_root(config, task), {}
+    for camera in cameras:
+        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
+        trained = [folder / camera for folder in (encoder_dir(config, root), kept_encoder_dir(config, root))
+                   if encoder_is_finished(folder / camera, steps)]
+        if not trained:
+            return None
+        found[camera] = encoder_fingerprint(trained[0])
+    return found
 
 
 def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
@@ -234,9 +297,13 @@ def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) ->
     }))
 
 
-def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[float]) -> dict | None:
-    """A result of another grid with the same recipe, evaluated at every masking level asked,
-    cut down to those levels; None if there is none."""
+def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[float],
+                       encoders: dict[str, str] | None) -> dict | None:
+    """A result of another grid with the same recipe, trained on the very encoders given (by
+    fingerprint; runs from before fingerprints were recorded are never taken) and evaluated
+    at every masking level asked, cut down to those levels; None if there is none."""
+    if encoders is None:
+        return None
     for path in sorted(Path(config.results_dir).glob("*/runs/*.json")):
         if path.parent.parent.name == config.name:
             continue
@@ -244,6 +311,8 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
         if "validation_seeds" not in result:  # an earlier setting's run, chosen on its test seeds
             continue
         if not same_recipe(result.get("recipe"), recipe) or not set(mask_ps) <= {r["mask_p"] for r in result["final"]}:
+            continue
+        if result.get("encoders") != encoders:
             continue
         return result | {
             "final": [r for r in result["final"] if r["mask_p"] in mask_ps],
@@ -271,6 +340,7 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> 
         "seed": seed, "dataset": root.name, "steps": summary["steps"], "final": summary["final"],
         "final_validation": summary["final_validation"],
         "epsilon": epsilon, **epsilon_scales(epsilon, cell.cameras, encoders),
+        "encoders": {camera: encoder_fingerprint(encoders / camera) for camera in cell.cameras},
         "validation_seeds": summary["validation_seeds"], "eval_seeds": summary["eval_seeds"],
         "demonstration_success": _demonstration_success(root),
         # the training run's own wall time over all its sittings (older runs: this call's)
@@ -361,7 +431,8 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
                 continue
             print(f"{path.name}: its cell changed since it ran (set aside in {set_aside(path).parent}); "
                   "it trains again, from its checkpoint where the change allows", flush=True)
-        reused = None if config.timed else finished_elsewhere(config, recipe, list(cell.eval_mask_p))
+        reused = None if config.timed else finished_elsewhere(config, recipe, list(cell.eval_mask_p),
+                                                              current_encoders(config, task, cell.cameras))
         if reused is not None:
             _store(path, reused | {"experiment": config.name, "cell": cell.label})
         else:
@@ -370,7 +441,9 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
                                                                 collect_config(shipped, task))}
     build_datasets(executor, list(needed.values()), config.collection.workers)
     encoders = sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras})
+    fetch_kept_encoders(shipped, encoders)
     _run_all(executor, ensure_encoder, [(shipped, root, camera) for root, camera in encoders])
+    keep_encoders(shipped, encoders)
     started = time.perf_counter()
     for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
         _store(result_path(config, task, cell, seed), result)

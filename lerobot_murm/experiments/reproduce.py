@@ -97,6 +97,10 @@ def encoder_is_finished(out: Path, steps: int) -> bool:
     return not metrics["interrupted"] and metrics["steps"] == steps
 
 
+def encoder_steps(config: ReproduceConfig, camera: str) -> int:
+    return config.vqvae.camera_steps.get(camera, config.vqvae.steps)
+
+
 def encoder_dir(config: ReproduceConfig, root: Path) -> Path:
     return Path(config.work_dir) / "vqvae" / f"{root.name}-{config.vqvae.steps}steps"
 
@@ -138,8 +142,8 @@ def encoder_fingerprint(folder: Path) -> str | None:
 def fetch_kept_encoders(config: ReproduceConfig, encoders: list[tuple[Path, str]]) -> None:
     """Into the work dir, each kept encoder that is not trained there (before `ensure_encoder`)."""
     for root, camera in encoders:
-        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
         out, kept = encoder_dir(config, root) / camera, kept_encoder_dir(config, root) / camera
+        steps = encoder_steps(config, camera)
         if not encoder_is_finished(out, steps) and encoder_is_finished(kept, steps):
             copy_encoder(kept, out)
 
@@ -148,8 +152,8 @@ def keep_encoders(config: ReproduceConfig, encoders: list[tuple[Path, str]]) -> 
     """Beside the results, each finished encoder of the work dir not kept there yet (a kept
     encoder is never replaced: the runs that record its fingerprint were trained on it)."""
     for root, camera in encoders:
-        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
         out, kept = encoder_dir(config, root) / camera, kept_encoder_dir(config, root) / camera
+        steps = encoder_steps(config, camera)
         if encoder_is_finished(out, steps) and not encoder_is_finished(kept, steps):
             copy_encoder(out, kept)
 
@@ -159,9 +163,8 @@ def current_encoders(config: ReproduceConfig, task: str, cameras: list[str]) -> 
     (the work dir's, else the kept ones); None while one of them is yet to be trained."""
     root, found = encoder_root(config, task), {}
     for camera in cameras:
-        steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
         trained = [folder / camera for folder in (encoder_dir(config, root), kept_encoder_dir(config, root))
-                   if encoder_is_finished(folder / camera, steps)]
+                   if encoder_is_finished(folder / camera, encoder_steps(config, camera))]
         if not trained:
             return None
         found[camera] = encoder_fingerprint(trained[0])
@@ -174,7 +177,7 @@ def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
     device = str(resolve_device(config.device))
     out = encoder_dir(config, root) / camera
     repo_id = f"local/{root.name}"
-    steps = config.vqvae.camera_steps.get(camera, config.vqvae.steps)
+    steps = encoder_steps(config, camera)
     if not encoder_is_finished(out, steps):
         vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
         train_vqvae(repo_id, root, camera, out, vq_config, device=device)

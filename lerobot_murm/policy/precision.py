@@ -53,7 +53,8 @@ def cpu_description(cpuinfo: str | None = None) -> str:
         key, _, value = line.partition(":")
         fields.setdefault(key.strip(), value.strip())
     name = fields.get("model name") or platform.machine()
-    family = f", family {fields['cpu family']} model {fields['model']}" if {"cpu family", "model"} <= fields.keys() else ""
+    has_family = {"cpu family", "model"} <= fields.keys()
+    family = f", family {fields['cpu family']} model {fields['model']}" if has_family else ""
     return f"{name}{family}, {'native' if cpu_has_native_bf16(cpuinfo) else 'no native'} bf16"
 
 

@@ -309,18 +309,21 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert "kept" in text and text.endswith("end\n")
 
 
-def test_the_table5_section_gives_time_per_update_relative_to_the_single_view_baseline():
+def test_the_time_table_compares_each_run_with_the_baseline_on_its_own_machine():
     from lerobot_murm.experiments.paper import TABLE5
     from lerobot_murm.experiments.report import time_table
 
-    rows = [{"task": "place_in_box", "cell": cell, "mask_p": "0.0", "train_steps_per_s": sps}
-            for cell, sps in (("single-global", "100.0"), ("separated_q-global+adjacent", "50.0"))]
-    rows.append({"task": "place_in_box", "cell": "separated_q-global+adjacent", "mask_p": "0.5",
-                 "train_steps_per_s": "50.0"})
-    table = time_table(rows, TABLE5)
-    assert "| place_in_box | single-global | 100.0 | 1.00 | 1.00 |" in table
-    assert "| place_in_box | separated_q-global+adjacent | 50.0 | 2.00 | 1.55 |" in table
-    assert table.count("separated_q") == 1  # one row per cell, masking levels aside
+    fast, slow = "Xeon, native bf16, 2 torch threads", "EPYC, no native bf16, 2 torch threads"
+    runs = [{"task": "place_in_box", "cell": cell, "seed": seed, "hardware": hardware, "train_steps_per_s": sps}
+            for cell, seed, hardware, sps in (
+                ("single-global", 0, fast, 100.0), ("single-global", 1, slow, 20.0),
+                ("separated_q-global+adjacent", 0, fast, 50.0), ("separated_q-global+adjacent", 1, slow, 5.0),
+                ("dropout-global+adjacent", 0, "a third CPU", 40.0))]
+    table = time_table(runs, TABLE5)
+    assert "| place_in_box | single-global | 60.0 | 1.00 | 2 | 2 | 1.00 |" in table
+    # 100 / 50 on one machine and 20 / 5 on the other: (2 + 4) / 2, not 60 / 27.5
+    assert "| place_in_box | separated_q-global+adjacent | 27.5 | 3.00 | 2 | 2 | 1.55 |" in table
+    assert "| place_in_box | dropout-global+adjacent | 40.0 | - | 1 | 1 | 1.05 |" in table  # no baseline on its CPU
 
 
 def test_a_grid_without_a_paper_table_gets_no_paper_columns(tmp_path):

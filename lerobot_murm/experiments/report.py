@@ -104,21 +104,32 @@ def plot_against_paper(name: str, rows: list[dict], tasks: tuple[str, ...], path
     return True
 
 
-def time_table(rows: list[dict], paper: dict[str, float], base_cell: str | None = None) -> str:
+def time_table(runs: list[dict], paper: dict[str, float], base_cell: str | None = None) -> str:
     """Table 5 (and Table 1's time column): each cell's time per update relative to
     `base_cell` (default: the task's first cell, the single-view baseline), from the runs'
-    median training steps/s (evaluation excluded)."""
-    unmasked = [r for r in rows if float(r["mask_p"]) == 0.0]
-    base = {}
-    for r in unmasked:
-        if base_cell is None or r["cell"] == base_cell:
-            base.setdefault(r["task"], float(r["train_steps_per_s"]))
+    median training steps/s (evaluation excluded). A run is compared only with the base
+    runs of its own machine (`hardware`): a grid may finish in sittings on different CPUs,
+    and a ratio across them would measure the CPUs."""
+    base_cells: dict[str, str] = {}
+    for r in runs:
+        base_cells.setdefault(r["task"], base_cell or r["cell"])
+    base: dict[tuple[str, str], list[float]] = {}
+    for r in runs:
+        if r["cell"] == base_cells[r["task"]]:
+            base.setdefault((r["task"], r["hardware"]), []).append(float(r["train_steps_per_s"]))
+    cells: dict[tuple[str, str], list[dict]] = {}
+    for r in runs:
+        cells.setdefault((r["task"], r["cell"]), []).append(r)
     against = base_cell or "first cell"
-    lines = [f"| task | cell | training steps/s | time per update vs. {against} | paper |", "|---|---|---:|---:|---:|"]
-    for r in unmasked:
-        ratio = f"{base[r['task']] / float(r['train_steps_per_s']):.2f}" if r["task"] in base else "-"
-        value = paper.get(r["cell"])
-        lines.append(f"| {r['task']} | {r['cell']} | {float(r['train_steps_per_s']):.1f} | {ratio} | "
+    lines = [f"| task | cell | training steps/s | time per update vs. {against} (same machine) | runs | machines | paper |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    for (task, cell), members in cells.items():
+        ratios = [float(np.mean(base[(task, r["hardware"])])) / float(r["train_steps_per_s"])
+                  for r in members if (task, r["hardware"]) in base]
+        steps = float(np.mean([float(r["train_steps_per_s"]) for r in members]))
+        value = paper.get(cell)
+        lines.append(f"| {task} | {cell} | {steps:.1f} | {f'{np.mean(ratios):.2f}' if ratios else '-'} | "
+                     f"{len(members)} | {len({r['hardware'] for r in members})} | "
                      f"{'' if value is None else f'{value:.2f}'} |")
     return "\n".join(lines) + "\n"
 
@@ -210,6 +221,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         beside = "; the paper's value beside ours" if results.name in PAPER_TABLES else ""
         config = load_reproduce_config(results / "config.yaml")
         split = config.report_split
+        runs = grid_results(config, results / "runs")
         against_paper = plot_against_paper(results.name, rows, grid_tasks(results), results / "vs_paper.png")
         sections.append(
             f"## {results.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds "
@@ -218,8 +230,8 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
             + (f"\n![ours beside the paper]({where / 'vs_paper.png'})\n" if against_paper else "")
-            + (f"\nTraining time (Table 5):\n\n{time_table(rows, TABLE5)}" if results.name == "table5" else "")
-            + (f"\nTraining time (Table 1's time column):\n\n{time_table(rows, TABLE1_TIME, 'single-global-128')}"
+            + (f"\nTraining time (Table 5):\n\n{time_table(runs, TABLE5)}" if results.name == "table5" else "")
+            + (f"\nTraining time (Table 1's time column):\n\n{time_table(runs, TABLE1_TIME, 'single-global-128')}"
                if results.name == "table1" else "")
             + (f"\nReward threshold of each cell:\n\n{epsilon_table(results)}" if sweeps_epsilon(results) else "")
             + (f"\nSpread over seeds during training (Table 2's second row; validation episodes of the learning "
@@ -227,7 +239,7 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
             + (f"Where each validation curve flattens (the first evaluation that no later one beats by more "
                f"than two standard errors; `lerobot_murm/experiments/flattening.py`):\n\n"
-               f"{flattening_table(grid_results(config, results / 'runs'), config.train.eval_episodes)}\n"
+               f"{flattening_table(runs, config.train.eval_episodes)}\n"
                if config.choose_updates else "")
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
             + "Runs:\n\n" + run_list(results, split)

@@ -282,7 +282,8 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     (grid / "runs").mkdir(parents=True)
     config = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", ["--tasks=[place_in_box,pick_up]", "--seeds=[0]"])
     draccus.dump(config, (grid / "config.yaml").open("w"))
-    for cell, reused in (("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}), ("single-top", {})):
+    top = {"recipe": {"precision": "torch.bfloat16"}, "encoders": {"top": "3a2b1039f7cb38bb"}}
+    for cell, reused in (("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}), ("single-top", top)):
         run = stored_run("pick_up", cell, "single", [cell.split("-")[1]], **reused)
         (grid / "runs" / f"pick_up__{cell}__seed0.json").write_text(json.dumps(run))
     (grid / "discussion.md").write_text("Top beats nothing here.\n")
@@ -294,6 +295,8 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert rest.index("Top beats nothing here.") < rest.index("Runs:")
     assert "6.0 min (the run of table4/pick_up__single-global__seed0)" in rest
     assert "Machine time of the runs this grid trained (1): 0.1 h." in rest
+    assert "| cpu | bf16 | top 3a2b1039 |" in rest  # which precision and which draw of the encoders
+    assert "| cpu | - | - |" in rest  # a run from before they were recorded
     assert (grid / "table.csv").exists() and (grid / "curves.png").exists()
     assert (grid / "vs_paper.png").exists() and "![ours beside the paper](results/table3/vs_paper.png)" in table
 

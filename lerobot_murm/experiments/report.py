@@ -182,11 +182,23 @@ def _values(values: list[float] | None) -> str:
     return "-" if values is None else ", ".join("-" if v is None else f"{v:.3g}" for v in values)
 
 
+def precision_text(run: dict) -> str:
+    """'bf16' / 'fp32': the dtype the run trained in, as its recipe records it."""
+    dtype = (run.get("recipe") or {}).get("precision")
+    return {"torch.bfloat16": "bf16", "torch.float32": "fp32"}.get(dtype, dtype or "-")
+
+
+def encoders_text(run: dict) -> str:
+    """The fingerprints of the encoders a run trained on ('-': a run from before they were
+    recorded), so that a reader sees which draw of the encoders each run had."""
+    return ", ".join(f"{camera} {fingerprint[:8]}" for camera, fingerprint in (run.get("encoders") or {}).items()) or "-"
+
+
 def run_list(results: Path, split: str = "test") -> str:
     """One line per run, with its final success on the grid's reported `split`, then the machine
     time the grid itself spent (reused runs were paid for by the grid that trained them)."""
-    lines = [f"| task | cell | seed | steps | final success, {split} (masking: %) | wall | train steps/s | hardware |",
-             "|---|---|---:|---:|---|---:|---:|---|"]
+    lines = [f"| task | cell | seed | steps | final success, {split} (masking: %) | wall | train steps/s | hardware "
+             "| precision | encoders |", "|---|---|---:|---:|---|---:|---:|---|---|---|"]
     trained, seconds = 0, 0.0
     for path in sorted((results / "runs").glob("*.json")):
         r = json.loads(path.read_text())
@@ -195,7 +207,7 @@ def run_list(results: Path, split: str = "test") -> str:
         finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in final_evaluations(r, split))
         wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
         lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
-                     f"{wall} | {r['train_steps_per_s']} | {r['hardware']} |")
+                     f"{wall} | {r['train_steps_per_s']} | {r['hardware']} | {precision_text(r)} | {encoders_text(r)} |")
     return "\n".join(lines) + f"\n\nMachine time of the runs this grid trained ({trained}): {seconds / 3600:.1f} h.\n"
 
 

@@ -327,6 +327,7 @@ def test_the_time_table_compares_each_run_with_the_baseline_on_its_own_machine()
     # 100 / 50 on one machine and 20 / 5 on the other: (2 + 4) / 2, not 60 / 27.5
     assert "| place_in_box | separated_q-global+adjacent | 27.5 | 3.00 | 2 | 2 | 1.55 |" in table
     assert "| place_in_box | dropout-global+adjacent | 40.0 | - | 1 | 1 | 1.05 |" in table  # no baseline on its CPU
+    assert table.count("separated_q") == 1  # one row per cell, whatever its runs' machines
 
 
 def test_a_grid_without_a_paper_table_gets_no_paper_columns(tmp_path):

@@ -212,6 +212,33 @@ def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuse
     assert found["reused_from"] == "table4/place_in_box__single-global__seed0"
 
 
+def test_an_encoder_stage_stopped_midway_keeps_the_encoders_it_finished(tmp_path, monkeypatch):
+    """The end of a sitting (or a failed job) in the encoder stage: each encoder finished
+    before it is beside the results already, for the next machine to copy back."""
+    from lerobot_murm.experiments import reproduce as driver
+    from lerobot_murm.experiments.executors import SerialExecutor
+
+    config = load_reproduce_config(REPO / "configs/reproduce/table6.yaml",
+                                   [f"--results_dir={tmp_path / 'results'}", f"--work_dir={tmp_path / 'work'}"])
+    root = driver.encoder_root(config, "place_in_box")
+
+    def train_one(config, root, camera):  # stands in for a VQ-VAE training: a finished encoder's files
+        if camera == "top":
+            raise RuntimeError("the sitting ended")
+        out = driver.encoder_dir(config, root) / camera
+        out.mkdir(parents=True)
+        (out / "model.safetensors").write_bytes(camera.encode())
+        (out / "metrics.json").write_text(json.dumps({"interrupted": False,
+                                                      "steps": driver.encoder_steps(config, camera)}))
+
+    monkeypatch.setattr(driver, "ensure_encoder", train_one)
+    with pytest.raises(RuntimeError, match="the sitting ended"):
+        driver.build_encoders(SerialExecutor(), config, [(root, "global"), (root, "top")])
+    kept = driver.kept_encoder_dir(config, root)
+    assert sorted(p.name for p in kept.iterdir()) == ["global"]
+    assert (kept / "global" / "model.safetensors").read_bytes() == b"global"
+
+
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_experiment_config_parses(path):
     config = load_reproduce_config(path)

@@ -397,6 +397,16 @@ def build_datasets(executor, collections: list[CollectConfig], workers: int) -> 
     _run_all(executor, ensure_dataset, [(c,) for c in unfinished if c not in todo], cpus=1, gpus=0)
 
 
+def build_encoders(executor, config: ReproduceConfig, encoders: list[tuple[Path, str]]) -> None:
+    """The grid's encoders: the kept ones copied in, the missing ones trained side by side, each
+    kept beside the results as soon as its job finishes. A driver stopped in this stage (the
+    end of a sitting, a failed job) loses no finished encoder: on a fresh machine the next
+    sitting copies it back instead of training another draw."""
+    fetch_kept_encoders(config, encoders)
+    for (_, root, camera), _ in executor.map(ensure_encoder, [(config, root, camera) for root, camera in encoders]):
+        keep_encoders(config, [(root, camera)])
+
+
 def remaining_time(elapsed_s: float, finished: int, left: int) -> str:
     """'; N runs left, about T' at this sitting's pace so far (runs side by side included)."""
     if not left:
@@ -443,10 +453,8 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     needed = {c.root: c for _, task, cell, _ in todo for c in (collect_config(shipped, task, cell),
                                                                 collect_config(shipped, task))}
     build_datasets(executor, list(needed.values()), config.collection.workers)
-    encoders = sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras})
-    fetch_kept_encoders(shipped, encoders)
-    _run_all(executor, ensure_encoder, [(shipped, root, camera) for root, camera in encoders])
-    keep_encoders(shipped, encoders)
+    build_encoders(executor, shipped, sorted({(encoder_root(shipped, task), camera)
+                                              for _, task, cell, _ in todo for camera in cell.cameras}))
     started = time.perf_counter()
     for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
         _store(result_path(config, task, cell, seed), result)

@@ -76,6 +76,18 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     rows = list(csv.DictReader((results / "table.csv").open()))
     assert len(rows) == 4 and {row["seeds"] for row in rows} == {"2"}
     assert "training seeds 0, 1;" in (results / "table.md").read_text()
+    assert load_reproduce_config(results / "config.yaml").seeds == [0, 1]  # the grid so far, not the sitting's part
+
+    # a result file torn by a crash is set aside, not a crash, and its run (finished) is read back from its checkpoint
+    torn = results / "runs" / "place_in_box__single-global__seed1.json"
+    whole = json.loads(torn.read_text())
+    torn.write_text(torn.read_text()[:100])
+    out = murm(["report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="], tmp_path)
+    assert f"{torn} does not read (torn?): left out" in out
+    out = murm([*args, "--seeds=[1]"], tmp_path)
+    assert "place_in_box__single-global__seed1.json: it does not read (torn)" in out
+    assert json.loads(torn.read_text())["final"] == whole["final"]
+    assert (results / "runs" / "superseded" / torn.name).read_text() == json.dumps(whole, indent=1)[:100]
 
     # another grid with the same single-view recipe (the smoke's data and cell, one masking level) takes the
     # finished run instead of training
@@ -237,6 +249,26 @@ def test_an_encoder_stage_stopped_midway_keeps_the_encoders_it_finished(tmp_path
     kept = driver.kept_encoder_dir(config, root)
     assert sorted(p.name for p in kept.iterdir()) == ["global"]
     assert (kept / "global" / "model.safetensors").read_bytes() == b"global"
+
+
+def test_a_sitting_that_runs_part_of_a_grid_adds_to_the_grid_it_records(tmp_path):
+    import draccus
+
+    from lerobot_murm.experiments.reproduce import grid_so_far
+
+    table3 = REPO / "configs/reproduce/table3.yaml"
+    stored = tmp_path / "config.yaml"
+    with stored.open("w") as f:
+        draccus.dump(load_reproduce_config(table3, ["--tasks=[place_in_box]", "--seeds=[0,1]"]), f)
+    sitting = load_reproduce_config(table3, ["--tasks=[pick_up,place_in_box]", "--seeds=[2]"])
+    grid = grid_so_far(sitting, stored)
+    assert grid.tasks == ["place_in_box", "pick_up"] and grid.seeds == [0, 1, 2]
+    assert grid_so_far(grid, stored) == grid
+    changed = load_reproduce_config(table3, ["--tasks=[pick_up]", "--train.steps=40000"])
+    assert grid_so_far(changed, stored) == changed  # another recipe: a new grid, recorded as it is
+    assert grid_so_far(sitting, tmp_path / "none.yaml") == sitting
+    stored.write_text("cells: [{method: single, cam")  # torn
+    assert grid_so_far(sitting, stored) == sitting
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs" / "reproduce").glob("*.yaml")), ids=lambda p: p.stem)

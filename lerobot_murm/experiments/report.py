@@ -5,7 +5,6 @@ time (`murm report`), which also refreshes the README's results tables (between
 
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from lerobot_murm.experiments.results import (
     grid_results,
     read_table,
     seed_curves,
+    stored_results,
     success_text,
     write_tables,
 )
@@ -148,8 +148,7 @@ def epsilon_table(results: Path) -> str:
     lines = ["| task | cell | epsilon, ours | on the paper's scale | quantile of frame-to-goal distances |",
              "|---|---|---:|---:|---:|"]
     runs = {}
-    for path in sorted((results / "runs").glob("*.json")):
-        r = json.loads(path.read_text())
+    for r in stored_results(results / "runs"):
         runs.setdefault((r["task"], r["cell"]), r)  # every seed runs at the same epsilon (one encoder)
     for (task, cell), r in runs.items():
         paper, quantile = r.get("epsilon_paper_scale"), r.get("epsilon_quantile")
@@ -166,7 +165,7 @@ def epsilon_table(results: Path) -> str:
 def training_spread(results: Path, paper: dict[str, float]) -> str:
     """Table 2's second row: per cell, the mean over the learning curve's evaluations of the
     sample std over seeds of the success rate (unmasked, validation episodes), in points."""
-    runs = [json.loads(path.read_text()) for path in sorted((results / "runs").glob("*.json"))]
+    runs = stored_results(results / "runs")
     lines = ["| task | cell | mean std during training (points) | seeds | paper |", "|---|---|---:|---:|---:|"]
     for (task, cell, mask_p), seeds in seed_curves(runs).items():
         if mask_p != 0.0:
@@ -200,8 +199,7 @@ def run_list(results: Path, split: str = "test") -> str:
     lines = [f"| task | cell | seed | steps | final success, {split} (masking: %) | wall | train steps/s | hardware "
              "| precision | encoders |", "|---|---|---:|---:|---|---:|---:|---|---|---|"]
     trained, seconds = 0, 0.0
-    for path in sorted((results / "runs").glob("*.json")):
-        r = json.loads(path.read_text())
+    for r in stored_results(results / "runs"):
         if "reused_from" not in r:
             trained, seconds = trained + 1, seconds + r["wall_s"]
         finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in final_evaluations(r, split))

@@ -27,6 +27,7 @@ from pathlib import Path
 import draccus
 import torch
 
+from lerobot_murm.checkpointing import write_atomic
 from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import episode_successes
@@ -36,9 +37,9 @@ from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
 from lerobot_murm.env.murm_env import SCENE_VERSION
 from lerobot_murm.expert import default_noise_std
-from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
+from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.executors import SerialExecutor
-from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, write_tables
+from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, read_result, write_tables
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import cpu_description, resolve_precision
@@ -310,8 +311,8 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
     for path in sorted(Path(config.results_dir).glob("*/runs/*.json")):
         if path.parent.parent.name == config.name:
             continue
-        result = json.loads(path.read_text())
-        if "validation_seeds" not in result:  # an earlier setting's run, chosen on its test seeds
+        result = read_result(path)
+        if result is None or "validation_seeds" not in result:  # an earlier setting's run, chosen on its test seeds
             continue
         if not same_recipe(result.get("recipe"), recipe) or not set(mask_ps) <= {r["mask_p"] for r in result["final"]}:
             continue
@@ -355,9 +356,28 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> 
 
 
 def _store(path: Path, result: dict) -> dict:
+    """A finished run's result file, written atomically: a hard stop leaves the old file or
+    the new one, never half of one."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(result, indent=1) + "\n")
+    write_atomic(path, (json.dumps(result, indent=1) + "\n").encode())
     return result
+
+
+def grid_so_far(config: ReproduceConfig, stored: Path) -> ReproduceConfig:
+    """The grid a results folder records (its config.yaml): a sitting that runs part of the
+    grid (`--tasks=[pick_up]`, `--seeds=[1]`, or a copy of the config with fewer tasks) adds
+    its tasks and seeds to the stored grid instead of replacing it, so the tables keep every
+    column run before. Any other change is a new grid definition and replaces it."""
+    if not stored.exists():
+        return config
+    try:
+        before = load_reproduce_config(stored)
+    except Exception:  # an unreadable record (torn): this sitting's grid stands
+        return config
+    if replace(before, tasks=config.tasks, seeds=config.seeds) != config:
+        return config
+    tasks = [*before.tasks, *(task for task in config.tasks if task not in before.tasks)]
+    return replace(config, tasks=tasks, seeds=sorted({*before.seeds, *config.seeds}))
 
 
 def _read_curve(path: Path) -> list[list[float]]:
@@ -432,7 +452,10 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
         check_writable(Path(folder))
     out = Path(config.results_dir) / config.name
     out.mkdir(parents=True, exist_ok=True)
-    draccus.dump(config, (out / "config.yaml").open("w"))
+    grid_record = grid_so_far(config, out / "config.yaml")
+    with (out / "config.yaml.partial").open("w") as f:
+        draccus.dump(grid_record, f)
+    (out / "config.yaml.partial").replace(out / "config.yaml")
     # jobs may run on other machines, in another working directory: absolute paths
     shipped = replace(config, work_dir=str(Path(config.work_dir).resolve()))
     grid = [(task, cell, seed) for task in config.tasks for cell in config.cells for seed in config.seeds]
@@ -440,9 +463,11 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     for task, cell, seed in grid:
         path, recipe = result_path(config, task, cell, seed), run_recipe(config, task, cell, seed)
         if path.exists():
-            if kept_as_finished(json.loads(path.read_text()).get("recipe"), recipe, cell):
+            stored = read_result(path)
+            if stored is not None and kept_as_finished(stored.get("recipe"), recipe, cell):
                 continue
-            print(f"{path.name}: its cell changed since it ran (set aside in {set_aside(path).parent}); "
+            why = "it does not read (torn)" if stored is None else "its cell changed since it ran"
+            print(f"{path.name}: {why} (set aside in {set_aside(path).parent}); "
                   "it trains again, from its checkpoint where the change allows", flush=True)
         reused = None if config.timed else finished_elsewhere(config, recipe, list(cell.eval_mask_p),
                                                               current_encoders(config, task, cell.cameras))
@@ -462,6 +487,6 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
             f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %"
             for r in final_evaluations(result, config.report_split)) + f" ({config.report_split})"
             + remaining_time(time.perf_counter() - started, finished, len(todo) - finished), flush=True)  # logs too
-    rows = write_tables(config, grid_results(config, out / "runs"), out)
+    rows = write_tables(grid_record, grid_results(grid_record, out / "runs"), out)
     print(markdown_table(rows))
     return out

@@ -51,6 +51,29 @@ def aggregate(results: list[dict], split: str = "test") -> list[dict]:
     return rows
 
 
+def read_result(path: Path) -> dict | None:
+    """A run's result file; None where it does not read (torn by a crash before writes were
+    atomic, or damaged since): the grid trains such a run again."""
+    try:
+        result = json.loads(Path(path).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    return result if isinstance(result, dict) else None
+
+
+def stored_results(runs: Path) -> list[dict]:
+    """The result files in `runs/`, in name order; one that does not read is left out, with a
+    line that says so (`murm reproduce` sets it aside and trains that run again)."""
+    results = []
+    for path in sorted(Path(runs).glob("*.json")):
+        result = read_result(path)
+        if result is None:
+            print(f"{path} does not read (torn?): left out; `murm reproduce` sets it aside and trains it again")
+        else:
+            results.append(result)
+    return results
+
+
 def read_table(path: Path) -> list[dict]:
     """A grid's table.csv, its rows as strings; one clear error if it is not one (torn, or
     written by something else)."""
@@ -139,5 +162,4 @@ def grid_results(config, runs: Path) -> list[dict]:
     cell order: the tables always cover everything finished so far."""
     grid = [(task, cell.label) for task in config.tasks for cell in config.cells]
     order = {key: i for i, key in enumerate(grid)}
-    stored = [json.loads(p.read_text()) for p in sorted(runs.glob("*.json"))]
-    return sorted(stored, key=lambda r: (order.get((r["task"], r["cell"]), len(order)), r["seed"]))
+    return sorted(stored_results(runs), key=lambda r: (order.get((r["task"], r["cell"]), len(order)), r["seed"]))

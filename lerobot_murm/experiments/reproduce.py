@@ -18,6 +18,7 @@ or a Ray cluster).
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import shutil
 import time
@@ -453,9 +454,9 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     out = Path(config.results_dir) / config.name
     out.mkdir(parents=True, exist_ok=True)
     grid_record = grid_so_far(config, out / "config.yaml")
-    with (out / "config.yaml.partial").open("w") as f:
-        draccus.dump(grid_record, f)
-    (out / "config.yaml.partial").replace(out / "config.yaml")
+    record = io.StringIO()
+    draccus.dump(grid_record, record)
+    write_atomic(out / "config.yaml", record.getvalue().encode())
     # jobs may run on other machines, in another working directory: absolute paths
     shipped = replace(config, work_dir=str(Path(config.work_dir).resolve()))
     grid = [(task, cell, seed) for task in config.tasks for cell in config.cells for seed in config.seeds]

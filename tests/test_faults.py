@@ -1,4 +1,5 @@
-"""Fault injection: kill -9 and a full disk during `murm collect`, a torn checkpoint swap."""
+"""Fault injection: kill -9 and a full disk during `murm collect`, a full disk while keeping
+an encoder, a torn checkpoint swap."""
 
 import hashlib
 import json
@@ -20,6 +21,7 @@ from lerobot_murm import checkpointing
 from lerobot_murm.checkpointing import CheckpointError, append_rows, load_state, recover, save_state
 from lerobot_murm.checkpointing import set_aside_rows_after, staging_folder, swap_in
 from lerobot_murm.collection import CollectConfig, collect
+from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 
 MURM = Path(sys.executable).parent / "murm"
 RECIPE = ["--task", "place_in_box", "--cameras", "global,active", "--image-size", "16"]
@@ -244,3 +246,46 @@ def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_pipeline, 
     assert again.returncode == 0, again.stderr[-3000:]
     assert "recovered the checkpoint" in again.stdout and "resuming from step 4" in again.stdout
     assert [line.split(",")[0] for line in (run / "log.csv").read_text().splitlines()[1:]] == ["1", "2", "3", "4", "5", "6"]
+
+
+KEEP_GLOBAL_ENCODER = """
+import sys
+from lerobot_murm.experiments import reproduce as driver
+from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+config = load_reproduce_config(sys.argv[1], sys.argv[2:])
+driver.keep_encoders(config, [(driver.encoder_root(config, "place_in_box"), "global")])
+"""
+
+
+def test_a_full_disk_while_keeping_an_encoder_leaves_no_kept_encoder_that_looks_finished(tmp_path):
+    """The disk fills while a trained encoder is copied beside the results. The half copy
+    does not pass for a finished encoder (its metrics are copied last), so the next sitting
+    copies it again, whole, instead of encoding with torn weights."""
+    from lerobot_murm.experiments import reproduce as driver
+
+    overrides = [f"--results_dir={tmp_path / 'results'}", f"--work_dir={tmp_path / 'work'}"]
+    table6 = Path(__file__).parents[1] / "configs/reproduce/table6.yaml"
+    config = load_reproduce_config(table6, overrides)
+    root = driver.encoder_root(config, "place_in_box")
+    trained = driver.encoder_dir(config, root) / "global"
+    trained.mkdir(parents=True)
+    (trained / "config.json").write_text("{}")
+    (trained / "model.safetensors").write_bytes(random.Random(0).randbytes(1 << 20))
+    (trained / "metrics.json").write_text(json.dumps({"interrupted": False,
+                                                      "steps": driver.encoder_steps(config, "global")}))
+    command = [sys.executable, "-c", KEEP_GLOBAL_ENCODER, str(table6), *overrides]
+
+    def small_disk() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 16, 1 << 16))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    full = subprocess.run(command, capture_output=True, text=True, timeout=120, preexec_fn=small_disk)
+    assert full.returncode == 1 and "File too large" in full.stderr, full.stderr[-2000:]
+    kept = driver.kept_encoder_dir(config, root) / "global"
+    assert (kept / "config.json").exists()  # the copy was under way
+    assert not driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
+
+    again = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
+    assert driver.encoder_fingerprint(kept) == driver.encoder_fingerprint(trained)

@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import shutil
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -131,8 +130,7 @@ def copy_encoder(source: Path, target: Path) -> None:
     target.mkdir(parents=True, exist_ok=True)
     for name in ENCODER_FILES:
         if (source / name).exists():
-            shutil.copyfile(source / name, target / f".{name}.partial")
-            (target / f".{name}.partial").replace(target / name)
+            write_atomic(target / name, (source / name).read_bytes())
 
 
 def encoder_fingerprint(folder: Path) -> str | None:

@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -26,6 +27,17 @@ from lerobot_murm.experiments.configuration_reproduce import load_reproduce_conf
 MURM = Path(sys.executable).parent / "murm"
 RECIPE = ["--task", "place_in_box", "--cameras", "global,active", "--image-size", "16"]
 SUMMARY = "meta/murm_collection.json"
+
+
+def disk_full_past(limit: int) -> Callable[[], None]:
+    """A child process's full disk, simulated without privileges by a file-size limit: writes
+    past `limit` bytes fail with EFBIG, as they would with ENOSPC (not a killed process)."""
+
+    def small_disk() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    return small_disk
 
 
 def contents(root: Path) -> dict[str, object]:
@@ -114,9 +126,8 @@ def test_kill_9_at_random_points_then_resume_gives_the_unbroken_dataset(tmp_path
 
 @pytest.mark.slow
 def test_a_full_disk_mid_collection_loses_only_the_unflushed_episodes(tmp_path):
-    """The disk fills while a data file grows (simulated without privileges by a file-size
-    limit: writes past it fail with EFBIG, as they would with ENOSPC). The flushed episodes
-    stay; after making room, --resume ends with the unbroken dataset."""
+    """The disk fills while a data file grows (`disk_full_past`). The flushed episodes stay;
+    after making room, --resume ends with the unbroken dataset."""
     episodes, flush_every = 6, 2
     reference = tmp_path / "unbroken"
     collect(CollectConfig(task="place_in_box", root=reference, episodes=episodes, workers=1,
@@ -127,11 +138,7 @@ def test_a_full_disk_mid_collection_loses_only_the_unflushed_episodes(tmp_path):
     assert first.returncode == 0, first.stderr[-2000:]
     two_episodes = max(p.stat().st_size for p in root.glob("data/*/*.parquet"))
 
-    def small_disk() -> None:
-        limit = int(1.5 * two_episodes)  # the next data file fails in its third episode
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a failed write, not a killed process
-
+    small_disk = disk_full_past(int(1.5 * two_episodes))  # the next data file fails in its third episode
     full = subprocess.run(command + ["--episodes", str(episodes), "--flush-every", "100", "--resume"],
                           capture_output=True, text=True, timeout=300, preexec_fn=small_disk)
     assert full.returncode == 1, full.stderr[-2000:]
@@ -275,11 +282,7 @@ def test_a_full_disk_while_keeping_an_encoder_leaves_no_kept_encoder_that_looks_
                                                       "steps": driver.encoder_steps(config, "global")}))
     command = [sys.executable, "-c", KEEP_GLOBAL_ENCODER, str(table6), *overrides]
 
-    def small_disk() -> None:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (1 << 16, 1 << 16))
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-
-    full = subprocess.run(command, capture_output=True, text=True, timeout=120, preexec_fn=small_disk)
+    full = subprocess.run(command, capture_output=True, text=True, timeout=120, preexec_fn=disk_full_past(1 << 16))
     assert full.returncode == 1 and "File too large" in full.stderr, full.stderr[-2000:]
     kept = driver.kept_encoder_dir(config, root) / "global"
     assert (kept / "config.json").exists()  # the copy was under way

@@ -1,6 +1,8 @@
-"""Collections of one recipe share their episodes: a smaller one cut from a larger one, and a
-larger one carrying a smaller one on, hold exactly the frames a direct collection would."""
+"""Collections share their episodes: a smaller one cut from a larger one, a larger one carrying
+a smaller one on, and a partly noisy one copied from the all-clean and all-noisy ones hold
+exactly the frames a direct collection would."""
 
+import importlib
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -11,7 +13,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import SUMMARY_FILE, episode_successes
-from lerobot_murm.collection.prefixes import cut_from_larger, start_from_smaller
+from lerobot_murm.collection.donors import Donor
+from lerobot_murm.collection.prefixes import cut_from_larger, noise_donors, start_from_smaller
 from lerobot_murm.collection.shards import is_complete
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.reproduce import build_datasets
@@ -73,7 +76,7 @@ def test_a_grid_simulates_only_the_largest_collection_of_a_recipe(tmp_path, monk
 
     simulated = []
     real_collect = reproduce.collect
-    monkeypatch.setattr(reproduce, "collect", lambda c: simulated.append((c.root.name, c.resume)) or real_collect(c))
+    monkeypatch.setattr(reproduce, "collect", lambda c, donors: simulated.append((c.root.name, c.resume)) or real_collect(c, donors))
     datasets = tmp_path / "datasets"
     collect(config(datasets / "two", 2))  # finished before: the four-episode collection carries it on
     wanted = [config(datasets / name, n) for name, n in (("one", 1), ("four", 4), ("three", 3))]
@@ -84,3 +87,40 @@ def test_a_grid_simulates_only_the_largest_collection_of_a_recipe(tmp_path, monk
     assert_same_dataset(datasets / "three", tmp_path / "direct" / "three")
     build_datasets(SerialExecutor(), [replace(c, resume=False) for c in wanted], workers=1)
     assert simulated == [("four", True)]  # nothing left to do
+
+
+def test_a_partly_noisy_collection_is_copied_from_the_clean_and_the_noisy_ones(tmp_path, monkeypatch):
+    collect_module = importlib.import_module("lerobot_murm.collection.collect")  # the package's `collect` is the function
+
+    datasets = tmp_path / "datasets"
+    half = config(datasets / "half", 7, noisy_fraction=0.5)
+    flags = [half.recipe.episode_start(i)[1] for i in range(7)]
+    assert any(flags[:6]) and not all(flags[:6]) and flags[6], flags  # both kinds, and a noisy last one
+    collect(config(datasets / "clean", 7, noisy_fraction=0.0))
+    collect(config(datasets / "noisy", 6))  # lacks episode 6: that one is simulated
+    collect(config(tmp_path / "direct" / "half", 7, noisy_fraction=0.5))
+    assert noise_donors(config(datasets / "clean", 7, noisy_fraction=0.0)) == {}
+
+    simulated = []
+    real_run = collect_module.run_episode
+    monkeypatch.setattr(collect_module, "run_episode", lambda recipe, i: simulated.append(i) or real_run(recipe, i))
+    donors = noise_donors(half)
+    assert donors == {False: Donor(datasets / "clean", 7), True: Donor(datasets / "noisy", 6)}
+    collect(half, donors=donors)
+    assert simulated == [6]
+    assert_same_dataset(half.root, tmp_path / "direct" / "half")
+
+
+def test_a_grid_collects_the_clean_and_noisy_donors_before_the_partly_noisy_collection(tmp_path, monkeypatch):
+    import lerobot_murm.experiments.reproduce as reproduce
+
+    built = []
+    real_collect = reproduce.collect
+    monkeypatch.setattr(reproduce, "collect",
+                        lambda c, donors: built.append((c.root.name, sorted(donors))) or real_collect(c, donors))
+    datasets = tmp_path / "datasets"
+    wanted = [config(datasets / name, 5, noisy_fraction=f) for name, f in (("quarter", 0.25), ("clean", 0.0), ("noisy", 1.0))]
+    build_datasets(SerialExecutor(), wanted, workers=1)
+    assert built == [("clean", []), ("noisy", []), ("quarter", [False, True])]
+    collect(config(tmp_path / "direct" / "quarter", 5, noisy_fraction=0.25))
+    assert_same_dataset(datasets / "quarter", tmp_path / "direct" / "quarter")

@@ -41,6 +41,7 @@ from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import dataset as murm_dataset
 from lerobot_murm.collection.durability import restore
 from lerobot_murm.collection.dataset import StagedEpisode
+from lerobot_murm.collection.donors import Donor, stage_from_donor
 from lerobot_murm.collection.episodes import EpisodeRecipe, run_episode
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES, MurmEnv
 from lerobot_murm.env.murm_env import TASK_DESCRIPTIONS
@@ -111,8 +112,10 @@ class CollectionInterrupted(RuntimeError):
     """The run stopped early; the dataset holds the episodes finished before that."""
 
 
-def collect(config: CollectConfig) -> dict:
-    """Collect `config.episodes` episodes into `config.root`; returns the collection summary."""
+def collect(config: CollectConfig, donors: dict[bool, Donor] | None = None) -> dict:
+    """Collect `config.episodes` episodes into `config.root`; returns the collection summary.
+    `donors` (noisy flag -> finished collection, `prefixes.noise_donors`): episodes of that
+    flag which the donor holds are copied from it instead of simulated (donors.py)."""
     dataset = _open_dataset(config)
     summary = murm_dataset.read_summary(config.root)
     if "episode_success" in summary:
@@ -128,7 +131,7 @@ def collect(config: CollectConfig) -> dict:
     progress = tqdm(total=config.episodes, initial=done, desc=f"collect {config.task}", unit="ep")
     with _deferred_stop_signals() as stop_requested:
         try:
-            for written, episode in enumerate(_episodes(config, range(config.first_episode + done, config.first_episode + config.episodes)), start=1):
+            for written, episode in enumerate(_episodes(config, range(config.first_episode + done, config.first_episode + config.episodes), donors or {}), start=1):
                 murm_dataset.save_staged_episode(dataset, episode, description)  # never cut in half
                 successes.append(episode.succeeded)
                 progress.set_postfix(
@@ -216,18 +219,23 @@ def _remove_collection(root: Path) -> None:
     shutil.rmtree(root)
 
 
-def simulate_and_stage(recipe: EpisodeRecipe, index: int, dataset_root: Path) -> StagedEpisode:
-    """A worker's job: one episode, its images encoded to PNG files."""
+def make_staged_episode(recipe: EpisodeRecipe, index: int, dataset_root: Path, donors: dict[bool, Donor]) -> StagedEpisode:
+    """A worker's job: one episode with its images as PNG files, copied from the donor of its
+    noise flag where that holds it, else simulated and encoded."""
+    _, noisy, _ = recipe.episode_start(index)
+    donor = donors.get(noisy)
+    if donor is not None and index < donor.episodes:
+        return stage_from_donor(donor.root, index, dataset_root, recipe.cameras)
     return murm_dataset.stage_episode(run_episode(recipe, index), dataset_root)
 
 
-def _episodes(config: CollectConfig, indices: range) -> Iterator[StagedEpisode]:
+def _episodes(config: CollectConfig, indices: range, donors: dict[bool, Donor]) -> Iterator[StagedEpisode]:
     """Staged episodes in index order, made in `config.workers` processes (in this one if 1)."""
     recipe = config.recipe
     shutil.rmtree(murm_dataset.staging_root(config.root), ignore_errors=True)
     if config.workers == 1:
         for index in indices:
-            yield simulate_and_stage(recipe, index, config.root)
+            yield make_staged_episode(recipe, index, config.root, donors)
         return
     context = get_context("forkserver")
     with ProcessPoolExecutor(config.workers, mp_context=context, initializer=_start_worker) as pool:
@@ -239,7 +247,7 @@ def _episodes(config: CollectConfig, indices: range) -> Iterator[StagedEpisode]:
                     next_index = next(upcoming, None)
                     if next_index is None:
                         break
-                    pending[next_index] = pool.submit(simulate_and_stage, recipe, next_index, config.root)
+                    pending[next_index] = pool.submit(make_staged_episode, recipe, next_index, config.root, donors)
                 yield pending.pop(index).result()
         finally:
             for future in pending.values():

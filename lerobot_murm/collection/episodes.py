@@ -30,11 +30,17 @@ class EpisodeRecipe:
     noise_std: float = PAPER_NOISE_STD  # the collections use the per-task calibrated std
     scene: int = SCENE_VERSION  # the simulator's scene and camera version the episodes were rendered in
 
-    def episode_seeds(self, index: int) -> tuple[int, np.random.Generator]:
-        """The env seed and the noise generator of episode `index`: from base seed and index alone."""
+    def episode_start(self, index: int) -> tuple[int, bool, np.random.Generator]:
+        """Episode `index`'s env seed, whether it is noisy, and the generator of its noise:
+        from base seed and index alone.
+
+        The flag is the generator's first draw, so the noise that follows does not depend
+        on the noisy fraction: a noisy episode is the same at any fraction, and so is a
+        clean one (`mixing.py` builds on this)."""
         sequence = np.random.SeedSequence([self.base_seed, index])
         env_seed = int(sequence.generate_state(1)[0])
-        return env_seed, np.random.default_rng(sequence.spawn(1)[0])
+        rng = np.random.default_rng(sequence.spawn(1)[0])
+        return env_seed, bool(rng.random() < self.noisy_fraction), rng
 
 
 @dataclass
@@ -69,8 +75,7 @@ def _env_for(recipe: EpisodeRecipe) -> MurmEnv:
 def run_episode(recipe: EpisodeRecipe, index: int, observe: Callable[[MurmEnv, int], None] | None = None) -> Episode:
     """`observe(env, t)`, if given, sees the simulator in the state of each recorded frame t
     (the encoders' object check renders masks of exactly the dataset's frames with it)."""
-    env_seed, rng = recipe.episode_seeds(index)
-    noisy = bool(rng.random() < recipe.noisy_fraction)
+    env_seed, noisy, rng = recipe.episode_start(index)
     env = _env_for(recipe)
     expert = ScriptedExpert(recipe.task)
     obs, _ = env.reset(seed=env_seed)

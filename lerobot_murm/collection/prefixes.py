@@ -1,4 +1,5 @@
-"""Collections of one recipe share their episodes: a smaller one is a larger one's start.
+"""Collections share their episodes: a smaller one is a larger one's start, and one with some
+noisy demonstrations is made of the all-clean and the all-noisy one's episodes.
 
 Episode i depends on the recipe's seed and i alone (`episodes.run_episode`), so the
 250-episode collection of Table 7 is the first 250 episodes of the 1000-episode one, and
@@ -6,6 +7,8 @@ the 3000-episode one carries the 1000 on. Instead of simulating them again, a sm
 collection is cut from a finished larger one with LeRobot's `delete_episodes`, and a larger
 one starts as a copy of a finished smaller one that `collect(resume=True)` carries on. Both
 are built beside their final place and renamed, so a dataset folder is complete or absent.
+A collection with a noisy fraction between 0 and 1 takes its episodes from the finished
+all-clean and all-noisy collections beside it (`noise_donors`, donors.py).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.collection import dataset as murm_dataset
 from lerobot_murm.collection.collect import CollectConfig
+from lerobot_murm.collection.donors import Donor
 
 
 def finished_siblings(config: CollectConfig) -> dict[int, Path]:
@@ -85,3 +89,17 @@ def start_from_smaller(config: CollectConfig) -> CollectConfig:
     shutil.copytree(smaller[max(smaller)], copying)
     copying.rename(config.root)
     return replace(config, resume=True)
+
+
+def noise_donors(config: CollectConfig) -> dict[bool, Donor]:
+    """The largest finished all-clean (False) and all-noisy (True) collections of `config`'s
+    recipe otherwise, beside it: where `config`'s episodes can be copied from. None for a
+    collection that is all clean or all noisy itself."""
+    if not 0 < config.noisy_fraction < 1:
+        return {}
+    donors = {}
+    for noisy in (False, True):
+        found = finished_siblings(replace(config, noisy_fraction=float(noisy)))
+        if found:
+            donors[noisy] = Donor(found[max(found)], max(found))
+    return donors

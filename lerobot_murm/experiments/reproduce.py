@@ -31,7 +31,7 @@ from lerobot_murm.checkpointing import write_atomic
 from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import episode_successes
-from lerobot_murm.collection.prefixes import cut_from_larger, finished_siblings, start_from_smaller
+from lerobot_murm.collection.prefixes import cut_from_larger, finished_siblings, noise_donors, start_from_smaller
 from lerobot_murm.collection.shards import collect_shard, is_complete, merge_shards, shard_ranges
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
@@ -82,11 +82,11 @@ def collect_config(config: ReproduceConfig, task: str, cell: CellSpec | None = N
 def ensure_dataset(collect_config: CollectConfig) -> Path:
     """The dataset: already there, cut from a finished larger collection of its recipe, or
     collected (carrying a finished smaller one on, or resuming whatever ran before, on
-    whichever machine)."""
+    whichever machine; copying the episodes the all-clean and all-noisy collections hold)."""
     if is_complete(collect_config) or (not collect_config.root.exists() and cut_from_larger(collect_config)):
         return collect_config.root
     collect_config = start_from_smaller(collect_config)
-    collect(replace(collect_config, resume=collect_config.root.exists()))
+    collect(replace(collect_config, resume=collect_config.root.exists()), donors=noise_donors(collect_config))
     return collect_config.root
 
 
@@ -396,18 +396,26 @@ def _median_steps_per_s(path: Path) -> float:
 
 
 def build_datasets(executor, collections: list[CollectConfig], workers: int) -> None:
-    """Collect the unfinished datasets: in shards merged afterwards where the executor shards
-    (a dataset half-collected in one piece is resumed in one piece), else whole. Of several
+    """Collect the unfinished datasets: the all-clean and all-noisy ones first, then those
+    with some noisy demonstrations, which copy their episodes from the first (donors.py)."""
+    unfinished = [c for c in collections if not is_complete(c)]
+    mixed = [c for c in unfinished if 0 < c.noisy_fraction < 1]
+    _build_datasets(executor, [c for c in unfinished if c not in mixed], workers)
+    _build_datasets(executor, mixed, workers)
+
+
+def _build_datasets(executor, unfinished: list[CollectConfig], workers: int) -> None:
+    """In shards merged afterwards where the executor shards (a dataset half-collected in one
+    piece, or one copied from noise donors, is built in one piece), else whole. Of several
     collections of one recipe (Table 7's 250 ... 3000 demonstrations) only the largest is
     simulated, carrying on a finished smaller one where there is one (not when sharded); the
     others are then cut from it (`prefixes.py`)."""
-    unfinished = [c for c in collections if not is_complete(c)]
     largest = {}  # of several collections of one recipe only the largest is simulated, the rest are cut from it
     for c in sorted(unfinished, key=lambda c: -c.episodes):
         largest.setdefault(c.recipe, c)
     todo = list(largest.values())
     sharded = {c.root: shard_ranges(c.episodes, executor.shard_episodes) for c in todo
-               if executor.shard_episodes and not c.root.exists()
+               if executor.shard_episodes and not c.root.exists() and not noise_donors(c)
                and not any(n >= c.episodes for n in finished_siblings(c))}
     _run_all(executor, ensure_dataset, [(c,) for c in todo if c.root not in sharded], cpus=workers, gpus=0)
     shards = [(c, episodes) for c in todo if c.root in sharded for episodes in sharded[c.root]]

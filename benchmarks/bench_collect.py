@@ -2,11 +2,13 @@
 
 Not a test. Run it on an otherwise idle machine and copy the table into BENCHMARKS.md:
 
-    .venv/bin/python benchmarks/bench_collect.py [--episodes 30] [--task place_in_box]
+    .venv/bin/python benchmarks/bench_collect.py [--episodes 30] [--task place_in_box] [--donors]
 
 Each run collects a fresh dataset of `--episodes` episodes (default 30) into a
 temporary folder with `murm collect`'s own code, and reports wall-clock rates, the
-projected time for 1000 episodes and the size on disk per 1000 episodes.
+projected time for 1000 episodes and the size on disk per 1000 episodes. `--donors`
+instead times a 50 %-noisy collection (2 workers) simulated against the same one copied
+from finished all-clean and all-noisy collections (collection/donors.py).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import time
 from pathlib import Path
 
 from lerobot_murm.collection import CollectConfig, collect
+from lerobot_murm.collection.prefixes import noise_donors
 from lerobot_murm.env import EPISODE_STEPS
 
 
@@ -30,11 +33,36 @@ def run(task: str, episodes: int, workers: int, root: Path) -> tuple[float, int]
     return elapsed, size
 
 
+def time_donors(task: str, episodes: int, tmp: Path) -> None:
+    """A 50 %-noisy collection simulated, then copied from its all-clean and all-noisy donors."""
+    def config(name: str, fraction: float) -> CollectConfig:
+        return CollectConfig(task=task, root=tmp / "datasets" / name, episodes=episodes, noisy_fraction=fraction)
+
+    for name, fraction in (("clean", 0.0), ("noisy", 1.0)):
+        collect(config(name, fraction))
+    times = {}
+    for way, donors in (("simulated", False), ("copied", True)):
+        half = config(f"half-{way}", 0.5)
+        start = time.perf_counter()
+        collect(half, donors=noise_donors(half) if donors else None)
+        times[way] = time.perf_counter() - start
+    print(f"\ntask {task}, {episodes} episodes, 50 % noisy, 2 workers")
+    for way, elapsed in times.items():
+        print(f"{way:>10}: {elapsed:6.1f} s, {episodes / elapsed * 60:6.1f} episodes/min, "
+              f"1000 episodes {1000 * elapsed / episodes / 60:5.1f} min")
+    print(f"copying is {times['simulated'] / times['copied']:.1f}x faster")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", default="place_in_box")
     parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--donors", action="store_true", help="time copying from noise donors instead")
     args = parser.parse_args()
+    if args.donors:
+        with tempfile.TemporaryDirectory() as tmp:
+            time_donors(args.task, args.episodes, Path(tmp))
+        return
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -222,8 +222,7 @@ def _remove_collection(root: Path) -> None:
 def make_staged_episode(recipe: EpisodeRecipe, index: int, dataset_root: Path, donors: dict[bool, Donor]) -> StagedEpisode:
     """A worker's job: one episode with its images as PNG files, copied from the donor of its
     noise flag where that holds it, else simulated and encoded."""
-    _, noisy, _ = recipe.episode_start(index)
-    donor = donors.get(noisy)
+    donor = donors.get(recipe.episode_start(index)[1]) if donors else None
     if donor is not None and index < donor.episodes:
         return stage_from_donor(donor.root, index, dataset_root, recipe.cameras)
     return murm_dataset.stage_episode(run_episode(recipe, index), dataset_root)

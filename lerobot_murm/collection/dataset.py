@@ -16,8 +16,10 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from lerobot.datasets.image_writer import write_image
@@ -33,6 +35,7 @@ SUMMARY_FILE = "meta/murm_collection.json"
 STAGING_DIR = "images/murm-staging"
 PNG_COMPRESS_LEVEL = 6  # what LeRobot's writer uses for `image` features
 IMAGE_NAMES = ["height", "width", "channels"]
+T = TypeVar("T")  # an image as `stage_camera` gets it: pixels to encode, or PNG bytes
 
 
 def dataset_features(cameras: tuple[str, ...], image_size: int) -> dict:
@@ -87,18 +90,32 @@ def staging_root(dataset_root: Path) -> Path:
     return Path(dataset_root) / STAGING_DIR
 
 
+def staging_folder(dataset_root: Path, index: int) -> Path:
+    """Where episode `index` is staged before the writer takes it."""
+    return staging_root(dataset_root) / f"episode-{index:06d}"
+
+
+def stage_camera(folder: Path, camera: str, frames: Sequence[T], goal: T, write: Callable[[T, Path], None]) -> dict[str, list[str]]:
+    """Write one camera's frames and goal image into the staging folder with `write(image, path)`;
+    the paths by feature key, the goal's repeated for every frame as the writer wants it."""
+    paths = [folder / camera / f"frame-{t:06d}.png" for t in range(len(frames))]
+    paths[0].parent.mkdir(parents=True, exist_ok=True)
+    for frame, path in zip(frames, paths, strict=True):
+        write(frame, path)
+    goal_path = folder / f"{camera}_goal.png"
+    write(goal, goal_path)
+    return {image_key(camera): [str(p) for p in paths], goal_image_key(camera): [str(goal_path)] * len(frames)}
+
+
+def _encode_png(image: np.ndarray, path: Path) -> None:
+    write_image(image, path, compress_level=PNG_COMPRESS_LEVEL)
+
+
 def stage_episode(episode: Episode, dataset_root: Path) -> StagedEpisode:
-    folder = staging_root(dataset_root) / f"episode-{episode.index:06d}"
+    folder = staging_folder(dataset_root, episode.index)
     images: dict[str, list[str]] = {}
     for camera, frames in episode.images.items():
-        paths = [folder / camera / f"frame-{t:06d}.png" for t in range(len(frames))]
-        paths[0].parent.mkdir(parents=True, exist_ok=True)
-        for frame, path in zip(frames, paths, strict=True):
-            write_image(frame, path, compress_level=PNG_COMPRESS_LEVEL)
-        images[image_key(camera)] = [str(p) for p in paths]
-        goal_path = folder / f"{camera}_goal.png"
-        write_image(episode.goal_images[camera], goal_path, compress_level=PNG_COMPRESS_LEVEL)
-        images[goal_image_key(camera)] = [str(goal_path)] * len(frames)
+        images |= stage_camera(folder, camera, frames, episode.goal_images[camera], _encode_png)
     return StagedEpisode(
         images,
         episode.state,

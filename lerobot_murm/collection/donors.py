@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 
-from lerobot_murm.collection.dataset import StagedEpisode, staging_root
+from lerobot_murm.collection.dataset import StagedEpisode, stage_camera, staging_folder
 from lerobot_murm.features import ACTION, ENVIRONMENT_STATE, STATE, goal_image_key, image_key
 
 
@@ -49,18 +49,12 @@ def _episode_rows(donor: Path, index: int) -> pa.Table:
 def stage_from_donor(donor: Path, index: int, dataset_root: Path, cameras: tuple[str, ...]) -> StagedEpisode:
     """Episode `index` of the donor, staged for `dataset_root` as `dataset.stage_episode` would."""
     rows = _episode_rows(donor, index)
-    folder = staging_root(dataset_root) / f"episode-{index:06d}"
+    folder = staging_folder(dataset_root, index)
     images: dict[str, list[str]] = {}
     for camera in cameras:
-        frames = rows.column(image_key(camera)).to_pylist()
-        paths = [folder / camera / f"frame-{t:06d}.png" for t in range(len(frames))]
-        paths[0].parent.mkdir(parents=True, exist_ok=True)
-        for frame, path in zip(frames, paths, strict=True):
-            path.write_bytes(frame["bytes"])
-        goal_path = folder / f"{camera}_goal.png"
-        goal_path.write_bytes(rows.column(goal_image_key(camera))[0].as_py()["bytes"])
-        images[image_key(camera)] = [str(p) for p in paths]
-        images[goal_image_key(camera)] = [str(goal_path)] * len(frames)
+        frames = [frame["bytes"] for frame in rows.column(image_key(camera)).to_pylist()]
+        goal = rows.column(goal_image_key(camera))[0].as_py()["bytes"]
+        images |= stage_camera(folder, camera, frames, goal, lambda png, path: path.write_bytes(png))
 
     def array(key: str, dtype: type) -> np.ndarray:
         return np.asarray(rows.column(key).to_pylist(), dtype)

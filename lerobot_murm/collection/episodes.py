@@ -36,7 +36,7 @@ class EpisodeRecipe:
 
         The flag is the generator's first draw, so the noise that follows does not depend
         on the noisy fraction: a noisy episode is the same at any fraction, and so is a
-        clean one (`mixing.py` builds on this)."""
+        clean one (`donors.py` builds on this)."""
         sequence = np.random.SeedSequence([self.base_seed, index])
         env_seed = int(sequence.generate_state(1)[0])
         rng = np.random.default_rng(sequence.spawn(1)[0])

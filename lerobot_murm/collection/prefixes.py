@@ -94,7 +94,7 @@ def start_from_smaller(config: CollectConfig) -> CollectConfig:
 def noise_donors(config: CollectConfig) -> dict[bool, Donor]:
     """The largest finished all-clean (False) and all-noisy (True) collections of `config`'s
     recipe otherwise, beside it: where `config`'s episodes can be copied from. None for a
-    collection that is all clean or all noisy itself."""
+    collection that is all clean or all noisy itself (an empty dict)."""
     if not 0 < config.noisy_fraction < 1:
         return {}
     donors = {}

@@ -76,11 +76,15 @@ def descendants(pid: int) -> list[int]:
     return [int(c) for c in children] + [d for c in children for d in descendants(int(c))]
 
 
-def collect_until_killed(root: Path, episodes: int, flush_every: int, rng: random.Random, resume: bool) -> None:
-    """Start `murm collect`, kill -9 it at a random moment within one flush interval after its
-    next flush (mid-episode, mid-write or mid-flush), so that a fast machine cannot finish first."""
+def murm_collect(root: Path, episodes: int, flush_every: int, resume: bool) -> list[str]:
     args = [str(MURM), "collect", *RECIPE, "--root", str(root), "--episodes", str(episodes), "--workers", "2"]
-    args += ["--flush-every", str(flush_every)] + (["--resume"] if resume else [])
+    return args + ["--flush-every", str(flush_every)] + (["--resume"] if resume else [])
+
+
+def collect_until_killed(args: list[str], root: Path, rng: random.Random) -> None:
+    """Start the collection `args` writing to `root`, kill -9 it at a random moment within one
+    flush interval after its next flush (mid-episode, mid-write or mid-flush), so that a fast
+    machine cannot finish first."""
     before = saved_episodes(root)
     log = root.with_name("stderr.txt")
     with log.open("w") as stderr:  # a file: an unread pipe could fill and block the run
@@ -113,15 +117,46 @@ def test_kill_9_at_random_points_then_resume_gives_the_unbroken_dataset(tmp_path
                           cameras=("global", "active"), image_size=16, flush_every=flush_every))
 
     root, rng = tmp_path / "killed", random.Random(16)
-    collect_until_killed(root, episodes, flush_every, rng, resume=False)
-    collect_until_killed(root, episodes, flush_every, rng, resume=True)
+    collect_until_killed(murm_collect(root, episodes, flush_every, resume=False), root, rng)
+    collect_until_killed(murm_collect(root, episodes, flush_every, resume=True), root, rng)
     assert saved_episodes(root) < episodes, "killed too late to test anything"
-    finished = subprocess.run(
-        [str(MURM), "collect", *RECIPE, "--root", str(root), "--episodes", str(episodes), "--workers", "2",
-         "--flush-every", str(flush_every), "--resume"], capture_output=True, text=True, timeout=300,
-    )
+    finished = subprocess.run(murm_collect(root, episodes, flush_every, resume=True),
+                              capture_output=True, text=True, timeout=300)
     assert finished.returncode == 0, finished.stderr[-2000:]
     assert contents(root) == contents(reference)  # the same files, metadata included
+
+
+COPY_FROM_DONORS = """
+import sys
+from pathlib import Path
+from lerobot_murm.collection import CollectConfig, collect
+from lerobot_murm.collection.prefixes import noise_donors
+half = CollectConfig(task="place_in_box", root=Path(sys.argv[1]), episodes=int(sys.argv[2]), workers=2,
+                     cameras=("global", "active"), image_size=16, flush_every=2, noisy_fraction=0.5,
+                     resume=sys.argv[3] == "resume")
+collect(half, donors=noise_donors(half))
+"""
+
+
+@pytest.mark.slow
+def test_kill_9_while_copying_from_noise_donors_then_resume_gives_the_unbroken_dataset(tmp_path):
+    """A half-noisy collection copied from its all-clean and all-noisy siblings (as `murm
+    reproduce` builds Table 7's) survives kill -9 like a simulated one."""
+    episodes = 16
+    recipe = {"task": "place_in_box", "workers": 2, "cameras": ("global", "active"), "image_size": 16, "flush_every": 2}
+    for name, fraction in (("clean", 0.0), ("noisy", 1.0)):
+        collect(CollectConfig(root=tmp_path / "datasets" / name, episodes=episodes, noisy_fraction=fraction, **recipe))
+    reference = tmp_path / "unbroken"
+    collect(CollectConfig(root=reference, episodes=episodes, noisy_fraction=0.5, **recipe))
+
+    root, rng = tmp_path / "datasets" / "half", random.Random(7)
+    copy = [sys.executable, "-c", COPY_FROM_DONORS, str(root), str(episodes)]
+    collect_until_killed(copy + ["fresh"], root, rng)
+    collect_until_killed(copy + ["resume"], root, rng)
+    assert saved_episodes(root) < episodes, "killed too late to test anything"
+    finished = subprocess.run(copy + ["resume"], capture_output=True, text=True, timeout=300)
+    assert finished.returncode == 0, finished.stderr[-2000:]
+    assert contents(root) == contents(reference)
 
 
 @pytest.mark.slow

@@ -32,7 +32,8 @@ TINY = [
 
 def murm(args: list[str], cwd: Path) -> str:
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    result = subprocess.run([str(MURM), *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
+    result = subprocess.run([str(MURM), *args], cwd=cwd, env=env, capture_output=True, text=True,
+                            timeout=1800)  # a liveness bound: the smoke grid takes ~7 min alone, twice that beside a grid
     assert result.returncode == 0, f"murm {args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
     assert_quiet(result.stdout + result.stderr)  # `make run` ends with `murm reproduce`
     return result.stdout

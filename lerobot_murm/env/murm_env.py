@@ -28,9 +28,9 @@ SUBSTEPS = 10
 CONTROL_FPS = round(1.0 / (PHYSICS_TIMESTEP * SUBSTEPS))  # 24 Hz
 MAX_STEP_M = 0.025  # end-effector displacement for an action of 1 along an axis
 EPISODE_STEPS = 100
-# Bumped whenever a camera or the scene changes (2: the top camera moved), so that datasets
-# rendered by another version are neither resumed nor reused.
-SCENE_VERSION = 2
+# Bumped whenever a camera or the scene changes (2: the top camera moved; 3: the authors'
+# cameras and blur), so that datasets rendered by another version are neither resumed nor reused.
+SCENE_VERSION = 3
 HOME_EE_POSITION = np.array([0.45, 0.0, 0.22])
 HOME_JITTER_M = 0.02
 SETTLE_SUBSTEPS = 20
@@ -93,7 +93,7 @@ class MurmEnv(gym.Env):
 
         self._client = bullet.connect()
         self._rig = CameraRig(self._client, self.cameras, self.image_size)
-        self._overview = CameraRig(self._client, ("global",), self.render_size)  # whichever cameras observe
+        self._overview = CameraRig(self._client, ("global",), self.render_size, blurred=False)
         self._task = make_task(task)
         self._robot: Panda | None = None
         self._goal_pixels: dict[str, np.ndarray] = {}

@@ -28,10 +28,11 @@ class CollectionSpec:
 
 @dataclass
 class VQVAESpec:
-    steps: int = 2500
+    steps: int = 2500  # every camera trains this many steps: one rule for all five (scene 3 on)
     batch_size: int = 128
-    # per-camera step counts: the moving active camera needs 5000 steps to reach 30 dB
-    camera_steps: dict[str, int] = field(default_factory=lambda: {"active": 5000})
+    # per-camera exceptions to `steps`; empty by default. Scene-2 grids gave the active camera
+    # 5000 (their config.yaml records it); a table that compares cameras should not.
+    camera_steps: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass
@@ -105,6 +106,9 @@ class ReproduceConfig:
     # a grid that chooses update counts (`updates`): the report says where each run's
     # validation curve flattens, by the rule in experiments/flattening.py
     choose_updates: bool = False
+    # build the grid's datasets and encoders (kept beside the results), then stop before any
+    # training run: the long shared stages of a study, ahead of the protocol its runs follow
+    prepare_only: bool = False
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]

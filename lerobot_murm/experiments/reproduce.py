@@ -487,6 +487,9 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     build_datasets(executor, list(needed.values()), config.collection.workers)
     build_encoders(executor, shipped, sorted({(encoder_root(shipped, task), camera)
                                               for _, task, cell, _ in todo for camera in cell.cameras}))
+    if config.prepare_only:
+        print(f"{config.name}: datasets and encoders ready; no run trained (prepare_only)", flush=True)
+        return out
     started = time.perf_counter()
     for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
         _store(result_path(config, task, cell, seed), result)

@@ -2,7 +2,7 @@
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test bench tables
+.PHONY: install run test test-fast bench tables
 
 $(STAMP): pyproject.toml scripts/install.sh
 	bash scripts/install.sh
@@ -16,7 +16,11 @@ run: $(STAMP)
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite.
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 0; fi; exit $$rc
+	$(VENV)/bin/python -m pytest -q --durations=15; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 0; fi; exit $$rc
+
+# The inner loop: everything but the end-to-end tests marked slow (CI runs `make test`).
+test-fast: $(STAMP)
+	$(VENV)/bin/python -m pytest -q -m "not slow" --durations=10
 
 # The whole study, every grid in the order that lets later grids reuse finished runs (Table 3's
 # global camera is Table 4's single view, ...); stop it at any time, it resumes where it was.

@@ -17,6 +17,9 @@ atexit.register(shutil.rmtree, _DATASETS_CACHE, ignore_errors=True)
 
 from lerobot_murm.env import MurmEnv  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from process_guard import no_process_outlives_its_test  # noqa: E402, F401  (an autouse fixture)
+
 
 @pytest.fixture
 def make_env():

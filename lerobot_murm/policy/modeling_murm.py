@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from lerobot_murm.features import goal_image_key, image_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.policy.process_group import keep_process_group_until_exit
 from lerobot_murm.policy.iql import (
     DoubleQ,
     GaussianPolicy,
@@ -49,6 +50,7 @@ class MurmPolicy(PreTrainedPolicy):
         # always 0) decay into subnormal floats within ~1000 steps, and subnormal arithmetic
         # made CPU training 15x slower by step 2000: flush them to zero (process-wide, harmless).
         torch.set_flush_denormal(True)
+        keep_process_group_until_exit()  # a multi-process lerobot-train must not hang at exit
         config.load_encoder_settings()
         if config.input_features:
             config.validate_features()

@@ -105,6 +105,9 @@ class ReproduceConfig:
     # a grid that chooses update counts (`updates`): the report says where each run's
     # validation curve flattens, by the rule in experiments/flattening.py
     choose_updates: bool = False
+    # train each cell's seeds side by side as one stacked model (policy/seed_stack.py), in one
+    # job; false: every seed its own job. Timed grids never stack.
+    stack_seeds: bool = True
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]

@@ -7,6 +7,7 @@ Not a test. Run it on an otherwise idle machine:
     .venv/bin/python benchmarks/bench_iql.py [--device cpu] [--repeats 5] [--widths both]
     .venv/bin/python benchmarks/bench_iql.py --lerobot-train-only [--num-workers 2]
     .venv/bin/python benchmarks/bench_iql.py --row-costs
+    .venv/bin/python benchmarks/bench_iql.py --seeds-together 3 [--profile] [--eval-share]
 
 Speed does not depend on the latents' content, so the replay holds random codebook
 indices (100,000 frames, 1,000 episodes). A step is what `murm train` does: sample a
@@ -16,6 +17,11 @@ policy (ABAB...), and the medians are compared, so machine noise hits both alike
 `--lerobot-train(-only)` writes such random codes as a latent dataset (`murm encode
 --to-dataset`'s writer, with random encoders), then measures `murm train`'s step on it
 and the stock `lerobot-train --policy.type=murm` on it, alternately.
+`--seeds-together K` measures `murm train`'s update of K seeds stacked (seed_stack.py)
+against one seed alone, in alternating blocks (aggregate seed-updates/s), for single view
+and separated Q with two cameras at the paper's widths in the default precision;
+`--profile` says where each one's step goes, `--eval-share` what share of a K-seed cell's
+wall time (the reproduce defaults) goes to evaluating in the simulator.
 """
 
 from __future__ import annotations
@@ -39,11 +45,15 @@ from lerobot.datasets.io_utils import hf_transform_to_torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from torch.utils.flop_counter import FlopCounterMode
 
+from lerobot_murm.experiments.configuration_reproduce import TrainSpec
 from lerobot_murm.features import LATENTS_PREFIX, goal_image_key, image_key, is_goal
 from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.policy.cuda_graph import CudaGraph, Updates, make_capturable
+from lerobot_murm.policy.evaluate import Evaluator, evaluation_seeds
 from lerobot_murm.policy.modeling_murm import MurmPolicy
-from lerobot_murm.policy.precision import resolve_precision
+from lerobot_murm.policy.precision import matmul_precision, resolve_precision
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
+from lerobot_murm.policy.seed_stack import LoneSeed, SeedStack
 from lerobot_murm.policy.train import build_policy, transition_batch
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.code_packing import unpack_codes
@@ -297,6 +307,165 @@ def compare_trainers(batch: int, num_workers: int, repeats: int, threads: int | 
     print(f"lerobot-train / murm train: {f / s:.2f}")
 
 
+SEED_CASES = [("single", 1), ("separated_q", 2)]
+
+
+def seed_policies(method: str, cameras: list[str], device: torch.device, seeds: int) -> list[MurmPolicy]:
+    """Policies of `seeds` seeds (own initialisations) sharing one set of encoders, as a cell's."""
+    policies = []
+    for seed in range(seeds):
+        torch.manual_seed(seed)
+        policies.append(make_policy(method, cameras, device).train())
+        policies[-1].encoders.load_state_dict(policies[0].encoders.state_dict())
+    return policies
+
+
+def seed_setup(method: str, n_cameras: int, seeds: int, batch: int, device: torch.device, graph: bool = False):
+    """A lone seed's and a K-seed stack's `murm train` updates (sampling, update, logged values
+    summed on the device) over one synthetic replay."""
+    cameras = CAMERAS[:n_cameras]
+    policies = seed_policies(method, cameras, device, seeds + 1)
+    caches = [synthetic_cache(c, seed=i) for i, c in enumerate(cameras)]
+    actions = np.random.default_rng(0).uniform(-1, 1, (len(caches[0].indices), 4)).astype(np.float32)
+    c = policies[0].config
+    replay = LatentReplay(caches, actions, c.epsilon, c.her_ratio, device=device)
+    for policy in policies:
+        policy.fit_latent_statistics(replay.latents)
+    lone, stack = LoneSeed(policies[0]), SeedStack(policies[1:])
+
+    def updates(updater, generators) -> Updates:
+        if graph:
+            make_capturable(updater.optimizer)
+        return Updates(lambda: updater.step(replay.sample_stacked(batch, generators)),
+                       CudaGraph(generators) if graph else None, device=device)
+
+    generators = [torch.Generator(device=device).manual_seed(s) for s in range(seeds + 1)]
+    return replay, lone, stack, updates(lone, generators[:1]), updates(stack, generators[1:]), generators
+
+
+def measure_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: torch.device, steps: int,
+                  repeats: int, graph: bool = False) -> dict:
+    """Seed-updates/s of one seed alone and of `seeds` stacked, in alternating blocks."""
+    _, _, _, lone, stacked, _ = seed_setup(method, n_cameras, seeds, batch, device, graph)
+    wall = {"lone": [], "stack": []}
+    cpu = {"lone": [], "stack": []}
+    for repeat in range(repeats + 1):  # the first round warms up and is not counted
+        for label, updates in (("lone", lone), ("stack", stacked)):
+            _sync(device)
+            start, cpu_start = time.perf_counter(), time.process_time()
+            for _ in range(steps):
+                updates()
+            updates.read()  # the trainer reads the losses back every log_every steps
+            if repeat:
+                wall[label].append((time.perf_counter() - start) / steps)
+                cpu[label].append((time.process_time() - cpu_start) / steps)
+    lone_s, stack_s = statistics.median(wall["lone"]), statistics.median(wall["stack"])
+    return {"method": method, "cameras": n_cameras, "lone": 1 / lone_s, "stack": seeds / stack_s,
+            "ratio": seeds * lone_s / stack_s,
+            "cpu_ratio": seeds * statistics.median(cpu["lone"]) / statistics.median(cpu["stack"])}
+
+
+def profile_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: torch.device, repeats: int = 15) -> None:
+    """CPU ms per seed of each part of the update, alone and stacked: what stacking shares."""
+    replay, lone, stack, _, _, generators = seed_setup(method, n_cameras, seeds, batch, device)
+
+    def ms(fn) -> float:
+        for _ in range(3):
+            fn()
+        times = []
+        for _ in range(repeats):
+            start = time.process_time()
+            fn()
+            times.append(time.process_time() - start)
+        return 1e3 * statistics.median(times)
+
+    rows = []
+    for label, updater, gens in (("alone", lone, generators[:1]), (f"{seeds} stacked", stack, generators[1:])):
+        batch_ = replay.sample_stacked(batch, gens)
+
+        def forward_backward() -> None:
+            if isinstance(updater, SeedStack):
+                loss = updater.loss(batch_)[0].sum()
+            else:
+                with matmul_precision(updater._precision, device):
+                    loss = updater.policies[0].iql_loss({k: v[0] for k, v in batch_.transition().items()})[0]
+            loss.backward()
+
+        def forward() -> None:
+            with torch.no_grad():
+                if isinstance(updater, SeedStack):
+                    updater.loss(batch_)
+                else:
+                    with matmul_precision(updater._precision, device):
+                        updater.policies[0].iql_loss({k: v[0] for k, v in batch_.transition().items()})
+
+        parts = {"sample": ms(lambda: replay.sample_stacked(batch, gens)), "forward (no grad)": ms(forward)}
+        parts["forward + backward"] = ms(lambda: (updater.optimizer.zero_grad(set_to_none=True), forward_backward()))
+        parts["Adam"] = ms(updater.optimizer.step)
+        polyak = updater.update_targets if isinstance(updater, SeedStack) else updater.policies[0].update
+        parts["Polyak"] = ms(polyak)
+        parts["whole update"] = ms(lambda: updater.step(replay.sample_stacked(batch, gens)))
+        rows.append((label, len(gens), parts))
+    print(f"\n{method}, {n_cameras} camera(s): CPU ms per seed (medians of {repeats})\n")
+    print("| part | " + " | ".join(label for label, *_ in rows) + " | stacked / alone |")
+    print("|---|" + "---:|" * (len(rows) + 1))
+    for part in rows[0][2]:
+        values = [parts[part] / k for _, k, parts in rows]
+        print(f"| {part} | " + " | ".join(f"{v:.2f}" for v in values) + f" | {values[1] / values[0]:.2f} |")
+
+
+def eval_share(seeds: int, device: torch.device, repeats: int = 1) -> None:
+    """Share of a `seeds`-seed separated-Q cell's wall time spent evaluating, at the reproduce
+    defaults (TrainSpec: evaluations every eval_every updates, the final validation and test
+    evaluations), from a timed stacked evaluation of eval_episodes episodes in the simulator
+    (48x48, two cameras, random encoders: an episode's cost does not depend on the policy)
+    and the stacked training rate."""
+    spec = TrainSpec()
+    cameras = CAMERAS[:2]
+    rate = measure_seeds("separated_q", 2, seeds, spec.batch_size, device, 20, 3)
+    for k, seeds_per_s in ((1, rate["lone"]), (seeds, rate["stack"])):
+        policies = seed_policies("separated_q", cameras, device, k)
+        with Evaluator("place_in_box", cameras, 48, spec.eval_envs, policies=k) as evaluator:
+            evaluator.evaluate(policies, evaluation_seeds(spec.eval_envs, 0))  # the workers' first episodes
+            seconds = min(evaluator.evaluate(policies, evaluation_seeds(spec.eval_episodes, 200_000))[0].seconds
+                          for _ in range(repeats))
+        evaluations = spec.steps // spec.eval_every - 1  # the last one is the final evaluation
+        eval_s = seconds * (evaluations + 2 * spec.final_eval_episodes / spec.eval_episodes)
+        train_s = spec.steps * k / seeds_per_s
+        print(f"{k} seed(s): {spec.eval_episodes} episodes each in {seconds:.1f} s; a cell of {spec.steps} updates: "
+              f"training {train_s / 60:.0f} min, evaluating {eval_s / 60:.0f} min: "
+              f"{100 * eval_s / (eval_s + train_s):.0f} % of its wall time evaluating")
+
+
+def gpu_seeds(batch: int, device: torch.device, steps: int, repeats: int) -> None:
+    """On a GPU: separated Q, two cameras; one seed's updates/s with and without a CUDA graph,
+    and aggregate seed-updates/s of 1, 3, 10 and 30 stacked seeds with it."""
+    print(f"GPU: {torch.cuda.get_device_name(device)}; torch {torch.__version__}, batch {batch}\n")
+    print("| seeds stacked | CUDA graph | one seed alone, updates/s | stacked, seed-updates/s |\n|---:|---|---:|---:|")
+    for seeds, graph in ((1, False), (1, True), (3, True), (10, True), (30, True)):
+        r = measure_seeds("separated_q", 2, seeds, batch, device, steps, repeats, graph)
+        print(f"| {seeds} | {'yes' if graph else 'no'} | {r['lone']:.0f} | {r['stack']:.0f} |", flush=True)
+
+
+def seeds_together(seeds: int, batch: int, device: torch.device, steps: int, repeats: int, profile: bool,
+                   share: bool) -> None:
+    results = [measure_seeds(m, n, seeds, batch, device, steps, repeats) for m, n in SEED_CASES]
+    print(f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
+          f"batch {batch}, default precision {str(resolve_precision('auto', device)).removeprefix('torch.')}, "
+          f"load average {os.getloadavg()[0]:.1f} at the end\n")
+    print("| method | cameras | one seed alone, updates/s | seeds stacked, seed-updates/s | ratio | CPU-time ratio |")
+    print("|---|---:|---:|---:|---:|---:|")
+    for r in results:
+        print(f"| {r['method']} | {r['cameras']} | {r['lone']:.1f} | {r['stack']:.1f} | {r['ratio']:.2f} | "
+              f"{r['cpu_ratio']:.2f} |")
+    print(f"\nseeds together, {seeds} seeds: {min(r['ratio'] for r in results):.2f}")
+    if profile:
+        for m, n in SEED_CASES:
+            profile_seeds(m, n, seeds, batch, device)
+    if share:
+        eval_share(seeds, device)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cpu")
@@ -313,11 +482,21 @@ def main() -> None:
     parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train's --num_workers")
     parser.add_argument("--episodes", type=int, default=1000, help="episodes of 100 frames in the latent dataset")
     parser.add_argument("--row-costs", action="store_true", help="only the per-row cost of LeRobot's loader")
+    parser.add_argument("--seeds-together", type=int, default=0, metavar="K",
+                        help="only K seeds stacked against one alone (single view, separated Q with two cameras)")
+    parser.add_argument("--profile", action="store_true", help="with --seeds-together: where each update goes")
+    parser.add_argument("--eval-share", action="store_true", help="with --seeds-together: the share spent evaluating")
+    parser.add_argument("--gpu-seeds", action="store_true", help="only the CUDA-graph and 1/3/10/30-seed table (GPU)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.row_costs:
         return row_costs()
+    if args.gpu_seeds:
+        return gpu_seeds(args.batch_size, torch.device(args.device), args.steps, args.repeats)
+    if args.seeds_together:
+        return seeds_together(args.seeds_together, args.batch_size, torch.device(args.device), args.steps,
+                              args.repeats, args.profile, args.eval_share)
     if args.lerobot_train_only:
         return compare_trainers(args.batch_size, args.num_workers, args.repeats, args.threads, args.steps,
                                 args.episodes, torch.device(args.device))

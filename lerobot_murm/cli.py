@@ -146,11 +146,11 @@ def _check_encoders(args: argparse.Namespace) -> None:
 def _train(args: argparse.Namespace) -> None:
     from lerobot_murm.policy.train import load_train_config, train
 
-    summary = train(load_train_config(args.config, args.overrides))
-    for row in summary["final"]:
-        print(f"{summary['task']} {summary['method']} {'+'.join(summary['cameras'])} masking {row['mask_p']:.0%}: "
-              f"success {100 * row['success_rate']:.1f} % over {row['episodes']} episodes")
-    print(f"checkpoint: {summary['checkpoint']}")
+    for summary in train(load_train_config(args.config, args.overrides)):
+        for row in summary["final"]:
+            print(f"{summary['task']} {summary['method']} {'+'.join(summary['cameras'])} seed {summary['seed']} "
+                  f"masking {row['mask_p']:.0%}: success {100 * row['success_rate']:.1f} % over {row['episodes']} episodes")
+        print(f"checkpoint: {summary['checkpoint']}")
 
 
 def _reproduce(args: argparse.Namespace) -> None:
@@ -270,7 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr = commands.add_parser(
         "train",
         help="train a MURM policy fast from the latent cache (resumes when rerun)",
-        epilog="Further --key=value arguments override the YAML, e.g. --steps=1000 --policy.method=dropout",
+        epilog="Further --key=value arguments override the YAML, e.g. --steps=1000 --policy.method=dropout; "
+               "--seeds=[0,1,2] trains three seeds side by side (in output_dir/seed0, ...)",
     )
     tr.add_argument("--config", required=True, help="a YAML file, e.g. configs/place_in_box/separated_q.yaml")
     tr.set_defaults(accepts_overrides=True)  # any further --key=value overrides the YAML (draccus)

@@ -194,7 +194,7 @@ def test_no_job_process_outlives_a_killed_driver_and_a_stopped_run_keeps_its_che
     marker = f"{name}={value}"
     env = {**os.environ, "HF_HUB_OFFLINE": "1", name: value}
     # no evaluation before the end: the only checkpoints are a run's start and the one its stop writes
-    long = [*TINY, "--train.steps=100000", "--train.eval_every=100000", "--seeds=[0,1,2]"]
+    long = [*TINY, "--train.steps=100000", "--train.eval_every=100000", "--seeds=[0,1,2]", "--stack_seeds=false"]
     driver = subprocess.Popen([str(MURM), "reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *long,
                                "--work_dir=work", "--results_dir=results", "--jobs=2"],
                               cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -12,7 +12,8 @@ from lerobot.policies.factory import get_policy_class, make_policy, make_pre_pos
 
 from lerobot_murm.features import goal_image_key, image_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.modeling_murm import MurmPolicy
+from lerobot_murm.policy.iql import camera_keep_mask
+from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
 from lerobot_murm.policy.train import build_policy
 
 REPO = "local/place_in_box"
@@ -90,8 +91,10 @@ def test_view_dropout_is_on_for_dropout_and_may_be_added_to_separated_q(tiny_pip
         policy = build_policy(make_config(encoders, view_dropout=view_dropout), dataset, torch.device("cpu"))
         state = torch.randn(64, 2, 2 * policy.config.latent_dim)
         transition = {"state": state, "next_state": state, "action": torch.zeros(64, policy.config.action_dim),
-                      "reward": torch.zeros(64), "done": torch.zeros(64)}
+                      "reward": torch.zeros(64), "done": torch.zeros(64), "keep": keep}
         return policy.iql_loss(transition)[0].item()
+
+    keep = camera_keep_mask(64, 2, 0.5, torch.Generator().manual_seed(0))  # the sampler draws it
 
     assert loss_with(True) != loss_with(False)
     assert loss_with(False) == loss_with(False)
@@ -107,9 +110,9 @@ def test_actor_scoped_dropout_hides_views_from_the_policy_only(tiny_pipeline, da
         policy = build_policy(make_config(encoders, **overrides), dataset, torch.device("cpu"))
         state = torch.randn(64, 2, 2 * policy.config.latent_dim)
         transition = {"state": state, "next_state": state.roll(1, 0), "action": torch.rand(64, policy.config.action_dim),
-                      "reward": torch.zeros(64), "done": torch.zeros(64)}
-        torch.manual_seed(1)
-        return policy.iql_loss(transition)[1]
+                      "reward": torch.zeros(64), "done": torch.zeros(64),
+                      "keep": camera_keep_mask(64, 2, 0.5, torch.Generator().manual_seed(1))}
+        return dict(zip(LOGGED, policy.iql_loss(transition)[1].tolist(), strict=True))
 
     no_dropout = logged_losses(view_dropout=False)
     actor_only = logged_losses(view_dropout=True, dropout_scope="actor")
@@ -287,7 +290,7 @@ def test_separated_q_can_leave_a_dropped_cameras_q_out_of_the_mean(tiny_pipeline
     torch.testing.assert_close(masked[:, 1::2], second_only[:, 1::2])
     torch.testing.assert_close(mean, (first_only + second_only) / 2)
     transition = {"state": state, "next_state": state.roll(1, 0), "action": action,
-                  "reward": torch.zeros(8), "done": torch.zeros(8)}
+                  "reward": torch.zeros(8), "done": torch.zeros(8), "keep": keep}
     loss, _ = policy.iql_loss(transition)
     assert torch.isfinite(loss)
 
@@ -305,7 +308,7 @@ def test_the_authors_masking_protocol_masks_one_camera_on_a_third_of_the_steps(t
     acted = policy.select_action(observation(policy, batch=64))
     policy.mask_generator.manual_seed(0)
     state = policy.state_from_observation(observation(policy, batch=64), mask_mode="authors")
-    torch.testing.assert_close(acted, policy.actor.act(state))
+    torch.testing.assert_close(acted, policy.actor.act(state.flatten(1)))
 
 
 def test_latent_standardisation_can_be_switched_off(tiny_pipeline, dataset):

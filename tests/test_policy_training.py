@@ -135,3 +135,73 @@ def test_validation_and_test_seeds_must_be_disjoint(tiny_pipeline, tmp_path):
     with pytest.raises(Exception) as error:  # draccus wraps the config's ValueError
         load_train_config(config, ["--validation_seed=300050"])
     assert "validation seeds 300050-300149 and test seeds 300000-300099 must be" in str(error.value.__cause__ or error.value)
+
+
+def _parameters(checkpoint: Path) -> dict[str, torch.Tensor]:
+    from safetensors.torch import load_file
+
+    return {k: v for k, v in load_file(checkpoint / "model.safetensors").items() if not k.startswith("encoders.")}
+
+
+def test_seeds_trained_side_by_side_write_what_each_would_alone_and_a_lagging_seed_catches_up(tiny_pipeline, tmp_path):
+    """`murm train --seeds=[0,1]`: seed 1 stacked against seed 1 alone (fp32), per-seed folders
+    in the lone format (lerobot-eval loads them), and a seed that a stop left behind (seed 0,
+    trained alone to step 4 here) trains on its own until the other catches up."""
+    fields = dict(steps=8, batch_size=16, log_every=1, eval_every=4, eval_episodes=1, final_eval_episodes=1, eval_envs=1)
+    config = train_config(tiny_pipeline, tmp_path, "separated_q", **fields)
+    policy = ["--policy.precision=fp32", "--policy.view_dropout=true"]
+    run_command([BIN / "murm", "train", "--config", config, *policy, "--seed=1", f"--output_dir={tmp_path / 'alone'}"],
+                cwd=tmp_path)
+    run_command([BIN / "murm", "train", "--config", config, *policy, "--seed=0", "--steps=4",
+                 f"--output_dir={tmp_path / 'run' / 'seed0'}"], cwd=tmp_path)
+    out = run_command([BIN / "murm", "train", "--config", config, *policy, "--seeds=[0,1]", "--stack=true"], cwd=tmp_path)
+    assert "resuming from step 4" in out and "training seeds 0, 1 side by side from step 4" in out
+
+    alone, stacked = tmp_path / "alone", tmp_path / "run" / "seed1"
+    for name in ("log.csv", "eval.csv", "learning_curve.png", "final_eval.json", "train_config.yaml"):
+        assert (stacked / name).exists() and (tmp_path / "run" / "seed0" / name).exists(), name
+    with (alone / "log.csv").open() as f, (stacked / "log.csv").open() as g:
+        lone_rows, stacked_rows = list(csv.DictReader(f)), list(csv.DictReader(g))
+    assert [r["step"] for r in stacked_rows] == [str(s) for s in range(1, 9)]
+    for column in ("value_loss", "critic_loss", "actor_loss"):  # the first update's losses: the same batch and weights
+        assert float(stacked_rows[0][column]) == pytest.approx(float(lone_rows[0][column]), rel=1e-5)
+    checkpoint = Path(json.loads((stacked / "final_eval.json").read_text())["checkpoint"])
+    lone, ours = _parameters(alone / "checkpoints" / "last" / "pretrained_model"), _parameters(checkpoint)
+    for name, value in lone.items():
+        torch.testing.assert_close(ours[name], value, rtol=1e-5, atol=1e-5 * value.abs().max().item())
+    assert lerobot_eval(checkpoint, tmp_path / "eval")["n_episodes"] == 2
+
+
+def test_seeds_side_by_side_killed_with_sigkill_resume_every_seed(tiny_pipeline, tmp_path):
+    config = train_config(tiny_pipeline, tmp_path, "dropout", steps=60, batch_size=8, log_every=5, eval_every=20,
+                          eval_episodes=1, final_eval_episodes=1, eval_envs=1)
+    command = [str(BIN / "murm"), "train", "--config", str(config), "--seeds=[0,1]"]
+    trainer = subprocess.Popen(command, cwd=tmp_path, env={**os.environ, "HF_HUB_OFFLINE": "1"},
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    states = [tmp_path / "run" / f"seed{s}" / "checkpoints" / "last" / "training_state.pt" for s in (0, 1)]
+
+    def checkpointed_step(path: Path) -> int:
+        try:
+            return torch.load(path, weights_only=False)["step"]
+        except Exception:  # not there yet, or being swapped in
+            return 0
+
+    try:
+        deadline = time.monotonic() + 300
+        while trainer.poll() is None and time.monotonic() < deadline and min(map(checkpointed_step, states)) < 20:
+            time.sleep(0.1)
+        assert trainer.poll() is None, "the run ended before it could be killed"
+        os.killpg(trainer.pid, signal.SIGKILL)  # the trainer and its simulator workers, mid-run
+        trainer.wait(timeout=60)
+    finally:
+        if trainer.poll() is None:
+            os.killpg(trainer.pid, signal.SIGKILL)
+    steps = [checkpointed_step(path) for path in states]
+    out = run_command(command, cwd=tmp_path)
+    for step in steps:
+        assert f"resuming from step {step}" in out
+    for seed in (0, 1):
+        run_dir = tmp_path / "run" / f"seed{seed}"
+        assert json.loads((run_dir / "final_eval.json").read_text())["steps"] == 60
+        with (run_dir / "log.csv").open() as f:
+            assert [int(r["step"]) for r in csv.DictReader(f)] == list(range(5, 65, 5))  # one row per step, none lost

@@ -509,3 +509,16 @@ def test_table2_reports_the_spread_over_seeds_during_training(tmp_path):
     # std over seeds at 5,000 updates: 10 points; at 10,000: 17.32; their mean 13.66
     table = training_spread(tmp_path / "table2", {"single-global-paper-eps2": 2.97})
     assert "| place_in_box | single-global-paper-eps2 | 13.66 | 3 | 2.97 |" in table
+
+
+def test_a_cells_seeds_train_as_one_job_unless_stacking_is_off():
+    from lerobot_murm.experiments.configuration_reproduce import CellSpec
+    from lerobot_murm.experiments.reproduce import training_jobs
+
+    single, separated = CellSpec("single", ["global"]), CellSpec("separated_q", ["global", "adjacent"])
+    todo = [("grid", "place_in_box", single, 0), ("grid", "place_in_box", separated, 0),
+            ("grid", "place_in_box", single, 2), ("grid", "pick_up", single, 1)]
+    assert [(task, cell.label, seeds) for _, task, cell, seeds in training_jobs(todo, together=True)] == [
+        ("place_in_box", "single-global", [0, 2]), ("place_in_box", "separated_q-global+adjacent", [0]),
+        ("pick_up", "single-global", [1])]
+    assert [seeds for *_, seeds in training_jobs(todo, together=False)] == [[0], [0], [2], [1]]

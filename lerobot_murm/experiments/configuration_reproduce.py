@@ -109,6 +109,9 @@ class ReproduceConfig:
     # build the grid's datasets and encoders (kept beside the results), then stop before any
     # training run: the long shared stages of a study, ahead of the protocol its runs follow
     prepare_only: bool = False
+    # train each cell's seeds side by side as one stacked model (policy/seed_stack.py), in one
+    # job; false: every seed its own job. Timed grids never stack.
+    stack_seeds: bool = True
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]

@@ -43,7 +43,7 @@ from lerobot_murm.experiments.results import final_evaluations, grid_results, ma
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import cpu_description, resolve_precision
-from lerobot_murm.policy.train import TrainConfig, train
+from lerobot_murm.policy.train import TrainConfig, train_seeds
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_distance import (
@@ -325,17 +325,25 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
     return None
 
 
-def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
-    """One training run and its final evaluation (resumed from its checkpoint, or read back
-    when finished); its result, for the driver to store."""
+def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int]) -> list[dict]:
+    """The training runs of a cell's `seeds` and their final evaluations (each resumed from its
+    checkpoint, or read back when finished), side by side as one stacked model when there are
+    several (`murm train` with seeds); their results, for the driver to store."""
     root = ensure_dataset(collect_config(config, task, cell))
     encoders_from = ensure_dataset(collect_config(config, task))
     encoders = encoder_dir(config, encoders_from)
     for camera in cell.cameras:
         ensure_encoder(config, encoders_from, camera)
-    recipe = run_recipe(config, task, cell, seed)
     start = time.perf_counter()
-    summary = train(train_config(config, task, cell, seed, root, encoders))
+    summaries = train_seeds([train_config(config, task, cell, seed, root, encoders) for seed in seeds])
+    return [run_result(config, task, cell, root, encoders, summary, start) for summary in summaries]
+
+
+def run_result(config: ReproduceConfig, task: str, cell: CellSpec, root: Path, encoders: Path, summary: dict,
+               start: float) -> dict:
+    """A finished run's result file, from its summary and its folder."""
+    seed = summary["seed"]
+    recipe = run_recipe(config, task, cell, seed)
     out = Path(summary["checkpoint"]).parents[2]
     epsilon = json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"]
     result = {
@@ -350,6 +358,8 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> 
         "wall_s": summary.get("wall_s", round(time.perf_counter() - start, 1)),
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
         "hardware": hardware(), "curve": _read_curve(out / "eval.csv"), "recipe": recipe,
+        # trained side by side with this many seeds (their shared wall time and steps/s above)
+        "seeds_together": summary.get("seeds_together", 1),
     }
     return result
 
@@ -373,7 +383,7 @@ def grid_so_far(config: ReproduceConfig, stored: Path) -> ReproduceConfig:
         before = load_reproduce_config(stored)
     except Exception:  # an unreadable record (torn): this sitting's grid stands
         return config
-    if replace(before, tasks=config.tasks, seeds=config.seeds) != config:
+    if replace(before, tasks=config.tasks, seeds=config.seeds, stack_seeds=config.stack_seeds) != config:
         return config
     tasks = [*before.tasks, *(task for task in config.tasks if task not in before.tasks)]
     return replace(config, tasks=tasks, seeds=sorted({*before.seeds, *config.seeds}))
@@ -443,6 +453,17 @@ def remaining_time(elapsed_s: float, finished: int, left: int) -> str:
     return f"; {runs}, about {hours:.1f} h" if hours >= 1 else f"; {runs}, about {max(hours * 60, 1):.0f} min"
 
 
+def training_jobs(todo: list[tuple], together: bool) -> list[tuple]:
+    """The runs to train as jobs: each cell's seeds in one job, trained side by side, or each
+    seed its own job."""
+    if not together:
+        return [(shipped, task, cell, [seed]) for shipped, task, cell, seed in todo]
+    cells: dict[tuple[str, str], tuple] = {}
+    for shipped, task, cell, seed in todo:
+        cells.setdefault((task, cell.label), (shipped, task, cell, []))[3].append(seed)
+    return list(cells.values())
+
+
 def _run_all(executor, fn, jobs: list[tuple], **resources) -> None:
     for _ in executor.map(fn, jobs, **resources):
         pass
@@ -490,13 +511,16 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     if config.prepare_only:
         print(f"{config.name}: datasets and encoders ready; no run trained (prepare_only)", flush=True)
         return out
-    started = time.perf_counter()
-    for finished, ((_, task, cell, seed), result) in enumerate(executor.map(train_run, todo), start=1):
-        _store(result_path(config, task, cell, seed), result)
-        print(f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: " + ", ".join(
-            f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %"
-            for r in final_evaluations(result, config.report_split)) + f" ({config.report_split})"
-            + remaining_time(time.perf_counter() - started, finished, len(todo) - finished), flush=True)  # logs too
+    started, finished = time.perf_counter(), 0
+    jobs = training_jobs(todo, together=config.stack_seeds and not config.timed)
+    for (_, task, cell, seeds), results in executor.map(train_run, jobs):
+        for seed, result in zip(seeds, results, strict=True):
+            finished += 1
+            _store(result_path(config, task, cell, seed), result)
+            print(f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: " + ", ".join(
+                f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %"
+                for r in final_evaluations(result, config.report_split)) + f" ({config.report_split})"
+                + remaining_time(time.perf_counter() - started, finished, len(todo) - finished), flush=True)
     rows = write_tables(grid_record, grid_results(grid_record, out / "runs"), out)
     print(markdown_table(rows))
     return out

@@ -4,6 +4,11 @@ An episode succeeds if the task's success condition holds at any step, as in
 `lerobot-eval`. Camera masking (Table 4) is the policy's own `eval_mask_p`, so this
 evaluation and `lerobot-eval` mask identically. The simulators run in worker processes
 (a gymnasium AsyncVectorEnv) while the policy acts on the whole batch at once.
+
+The seeds of a stack (`seed_stack.py`) evaluate together: `num_envs` workers per seed in
+one pool, each seed's group running the very episodes (seeds, batching, masking draws) it
+would run alone, and one forward per step for all of them: the shared encoders once over
+every observation, then all seeds' actors as one batched network.
 """
 
 from __future__ import annotations
@@ -60,16 +65,31 @@ def _make_worker_env(env_id: str, kwargs: dict, trainer_pid: int) -> gym.Env:
     return gym.make(env_id, **kwargs)
 
 
-class Evaluator:
-    """Keeps `num_envs` simulator processes alive between evaluations."""
+def act_together(policies: list[MurmPolicy], batch: dict[str, torch.Tensor],
+                 actors: tuple[dict, dict] | None = None) -> torch.Tensor:
+    """Deterministic actions of policies that share their encoders, for equal consecutive groups
+    of the batch's rows (group k: policy k, masked by policy k's own settings and draws). One
+    encoder pass for all rows; the actors run as one batched network (`actors`, their weights
+    stacked by `torch.func.stack_module_state`; made here if not given)."""
+    seeds = len(policies)
+    latents = policies[0].observation_latents(batch).unflatten(0, (seeds, -1))
+    states = torch.stack([p.masked_state(z, p.config.eval_mask_p, p.config.eval_mask_mode)
+                          for p, z in zip(policies, latents, strict=True)])
+    weights = actors or torch.func.stack_module_state([p.actor for p in policies])
+    return torch.func.functional_call(policies[0].actor, weights, (states.flatten(-2),)).flatten(0, 1)
 
-    def __init__(self, task: str, cameras: list[str], image_size: int = 48, num_envs: int = 4):
+
+class Evaluator:
+    """Keeps `num_envs` simulator processes per policy evaluated together alive between evaluations."""
+
+    def __init__(self, task: str, cameras: list[str], image_size: int = 48, num_envs: int = 4, policies: int = 1):
         if task not in GYM_IDS:
             raise ValueError(f"unknown task {task!r}; choose one of {sorted(GYM_IDS)}")
-        self.task, self.cameras, self.num_envs = task, list(cameras), num_envs
+        self.task, self.cameras, self.num_envs, self.policies = task, list(cameras), num_envs, policies
         kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
         self.envs = gym.vector.AsyncVectorEnv(
-            [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs)], context="fork"
+            [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs * policies)],
+            context="fork",
         )
 
     def close(self) -> None:
@@ -92,29 +112,39 @@ class Evaluator:
         return batch
 
     @torch.no_grad()
-    def evaluate(self, policy: MurmPolicy, seeds: list[int], mask_p: float = 0.0, mask_mode: str = "paper") -> EvalResult:
+    def evaluate(self, policies: list[MurmPolicy], seeds: list[int], mask_p: float = 0.0,
+                 mask_mode: str = "paper") -> list[EvalResult]:
+        """Each policy's success on the episodes `seeds`, as if it were evaluated alone; the
+        seconds are those of the whole evaluation, which they share."""
+        if len(policies) != self.policies:
+            raise ValueError(f"this evaluator runs {self.policies} policies at a time, not {len(policies)}")
         start = time.perf_counter()
-        device = next(policy.parameters()).device
-        was_training, old_mask = policy.training, (policy.config.eval_mask_p, policy.config.eval_mask_mode)
-        policy.eval()
+        device = next(policies[0].parameters()).device
+        saved = [(p.training, p.config.eval_mask_p, p.config.eval_mask_mode) for p in policies]
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # the simulator processes need the other cores more
-        policy.config.eval_mask_p, policy.config.eval_mask_mode = mask_p, mask_mode
-        policy.mask_generator.manual_seed(policy.config.eval_mask_seed)
-        successes: list[bool] = []
+        for policy in policies:
+            policy.eval()
+            policy.config.eval_mask_p, policy.config.eval_mask_mode = mask_p, mask_mode
+            policy.mask_generator.manual_seed(policy.config.eval_mask_seed)
+        actors = torch.func.stack_module_state([p.actor for p in policies])
+        successes: list[list[bool]] = [[] for _ in policies]
         try:
             for first in range(0, len(seeds), self.num_envs):
                 chunk = seeds[first : first + self.num_envs]
                 padded = chunk + [chunk[-1]] * (self.num_envs - len(chunk))  # idle envs repeat a seed
-                observation, _ = self.envs.reset(seed=padded)
-                succeeded = np.zeros(self.num_envs, bool)
+                observation, _ = self.envs.reset(seed=padded * len(policies))
+                succeeded = np.zeros(self.num_envs * len(policies), bool)
                 for _ in range(EPISODE_STEPS):
-                    action = policy.select_action(self._batch(observation, device)).cpu().numpy()
+                    action = act_together(policies, self._batch(observation, device), actors).cpu().numpy()
                     observation, _, _, _, info = self.envs.step(action)
                     succeeded |= np.asarray(info["is_success"], bool)
-                successes += succeeded[: len(chunk)].tolist()
+                for k, group in enumerate(succeeded.reshape(len(policies), self.num_envs)):
+                    successes[k] += group[: len(chunk)].tolist()
         finally:
             torch.set_num_threads(threads)
-            policy.config.eval_mask_p, policy.config.eval_mask_mode = old_mask
-            policy.train(was_training)
-        return EvalResult(self.task, mask_p, mask_mode, list(seeds), successes, time.perf_counter() - start)
+            for policy, (training, old_p, old_mode) in zip(policies, saved, strict=True):
+                policy.config.eval_mask_p, policy.config.eval_mask_mode = old_p, old_mode
+                policy.train(training)
+        seconds = time.perf_counter() - start
+        return [EvalResult(self.task, mask_p, mask_mode, list(seeds), s, seconds) for s in successes]

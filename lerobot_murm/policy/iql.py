@@ -13,6 +13,10 @@ them into a LeRobot policy and the fast trainer samples batches for them.
 - dropout: whole (z_k, zg_k) pairs zeroed with probability p, never all cameras; with
   separated Q a dropped camera's Q_k may instead be left out of the mean.
 
+Every network and loss here also takes leading dimensions before the batch: the seeds of a
+seed stack (`seed_stack.py`), whose weights carry the same leading dimension. Losses
+reduce over the batch (the last dimension) only, so a stack gets one loss per seed.
+
 The policy is a Gaussian whose mean is squashed by tanh and whose log-std is a learned
 state-independent vector squashed into [log_std_min, log_std_max] by a sigmoid (a hard
 clamp would stop its gradient whenever it sits outside the range); actions are clipped
@@ -34,9 +38,10 @@ def sparse_reward(z: torch.Tensor, z_goal: torch.Tensor, epsilons: torch.Tensor)
 
 
 def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
-    """L_2^tau of eq. 6: asymmetric squared error, tau for positive diffs (Q above V)."""
+    """L_2^tau of eq. 6: asymmetric squared error, tau for positive diffs (Q above V); the
+    mean over the batch (the last dimension)."""
     weight = torch.where(diff > 0, expectile, 1.0 - expectile)
-    return (weight * diff.pow(2)).mean()
+    return (weight * diff.pow(2)).mean(-1)
 
 
 def advantage_weights(advantage: torch.Tensor, beta: float, max_weight: float) -> torch.Tensor:
@@ -62,19 +67,30 @@ def camera_keep_mask(batch: int, cameras: int, p: float, generator: torch.Genera
 def mlp(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
     modules: list[nn.Module] = []
     for i in range(layers):
-        modules += [nn.Linear(in_dim if i == 0 else hidden, hidden), nn.ReLU()]
+        modules += [Linear(in_dim if i == 0 else hidden, hidden), nn.ReLU()]
     modules.append(OutputLinear(hidden, out_dim))
     return nn.Sequential(*modules)
 
 
-class OutputLinear(nn.Linear):
+class Linear(nn.Linear):
+    """nn.Linear (same parameters, same checkpoints) whose weight may carry a leading seed
+    dimension, (seeds, out, in), applied to (seeds, B, in) as one batched matmul."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.weight.dim() == 2:
+            return super().forward(x)
+        return torch.baddbmm(self.bias.unsqueeze(-2), x, self.weight.transpose(-1, -2))
+
+
+class OutputLinear(Linear):
     """A network's last layer: float32 under mixed precision (see `fp32_output`)."""
 
-    forward = fp32_output(nn.Linear.forward)
+    forward = fp32_output(Linear.forward)
 
 
 class EnsembleLinear(nn.Module):
-    """`heads` independent linear layers applied as one batched matmul: (heads, B, in) -> (heads, B, out)."""
+    """`heads` independent linear layers applied as one batched matmul: (heads, B, in) -> (heads, B, out);
+    with a seed stack's leading dimension, (seeds, heads, B, in): all seeds' heads in one matmul."""
 
     def __init__(self, heads: int, in_dim: int, out_dim: int):
         super().__init__()
@@ -83,7 +99,8 @@ class EnsembleLinear(nn.Module):
         self.bias = nn.Parameter(torch.empty(heads, 1, out_dim).uniform_(-bound, bound))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.baddbmm(self.bias, x, self.weight)
+        out = torch.baddbmm(self.bias.flatten(0, -3), x.flatten(0, -3), self.weight.flatten(0, -3))
+        return out.view(*x.shape[:-1], -1)
 
 
 class EnsembleOutput(EnsembleLinear):
@@ -110,18 +127,19 @@ class DoubleQ(nn.Module):
 
     def forward(self, state: torch.Tensor, action: torch.Tensor, keep: torch.Tensor | None = None) -> torch.Tensor:
         """state: (B, groups, group_dim); keep: optional (B, groups) bool, the heads each row
-        averages over (all when None). Returns (2, B): the two sets' averaged Q values."""
-        batch = state.shape[0]
-        x = torch.cat([state, action.to(state.dtype).unsqueeze(1).expand(-1, self.groups, -1)], dim=-1).transpose(0, 1)
+        averages over (all when None). Returns (2, B): the two sets' averaged Q values.
+        A seed stack's inputs and output have its seed dimension in front."""
+        action = action.to(state.dtype).unsqueeze(-2).expand(*state.shape[:-1], -1)
+        x = torch.cat([state, action], dim=-1).transpose(-3, -2)  # (groups, B, in)
         h = torch.relu(self.first(x))  # (groups, B, 2 * hidden): both sets at once
-        h = h.view(self.groups, batch, 2, self.hidden).permute(2, 0, 1, 3).reshape(2 * self.groups, batch, self.hidden)
+        h = h.unflatten(-1, (2, self.hidden)).movedim(-2, -4).flatten(-4, -3)  # (2 * groups, B, hidden)
         for layer in self.body:
             h = torch.relu(layer(h))
-        q = self.out(h).view(2, self.groups, batch)
+        q = self.out(h).squeeze(-1).unflatten(-2, (2, self.groups))  # (2, groups, B)
         if keep is None:
-            return q.mean(1)
-        weights = keep.t().to(q.dtype)  # (groups, B)
-        return (q * weights).sum(1) / weights.sum(0)
+            return q.mean(-2)
+        weights = keep.transpose(-1, -2).to(q.dtype).unsqueeze(-3)  # (1, groups, B)
+        return (q * weights).sum(-2) / weights.sum(-2)
 
 
 class GaussianPolicy(nn.Module):
@@ -133,12 +151,19 @@ class GaussianPolicy(nn.Module):
         self.log_std_min, self.log_std_max = log_std_min, log_std_max
 
     def distribution(self, state: torch.Tensor) -> torch.distributions.Normal:
-        mean = torch.tanh(self.mean(state.flatten(1)))
+        mean = torch.tanh(self.mean(state))
         span = self.log_std_max - self.log_std_min
-        std = (self.log_std_min + span * torch.sigmoid(self.log_std_logit)).exp()
-        return torch.distributions.Normal(mean, std.expand_as(mean))
+        std = (self.log_std_min + span * torch.sigmoid(self.log_std_logit)).exp().unsqueeze(-2)
+        # no argument validation: its data-dependent checks would synchronise with the device at
+        # every step, which a CUDA graph cannot capture
+        return torch.distributions.Normal(mean, std.expand_as(mean), validate_args=False)
 
     def act(self, state: torch.Tensor, deterministic: bool = True) -> torch.Tensor:
         dist = self.distribution(state)
         action = dist.mean if deterministic else dist.sample()
         return action.clamp(-1.0, 1.0)
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        """The deterministic action: what evaluation runs (for a stack's seeds at once, through
+        `torch.func.functional_call`)."""
+        return self.act(state)

@@ -34,7 +34,7 @@ from lerobot_murm.policy.iql import (
     polyak_update,
 )
 from lerobot_murm.policy.precision import compute_dtype, matmul_precision, resolve_precision
-from lerobot_murm.policy.replay import ACTION, DONE, NEXT_STATE, REWARD, STATE, LatentReplay, replay_for_dataset
+from lerobot_murm.policy.replay import ACTION, DONE, KEEP, NEXT_STATE, REWARD, STATE, LatentReplay, replay_for_dataset
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 LOGGED = ("value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight")
@@ -142,25 +142,31 @@ class MurmPolicy(PreTrainedPolicy):
     def state_from_observation(self, batch: dict[str, Tensor], mask_p: float = 0.0, mask_mode: str = "paper") -> Tensor:
         """(B, cameras, 2 * latent) standardised state of one observation, cameras masked
         (Table 4) by `mask_mode`: "paper", each camera with probability mask_p; "authors",
-        on a third of the steps one random camera (the authors' public code).
+        on a third of the steps one random camera (the authors' public code)."""
+        return self.masked_state(self.observation_latents(batch), mask_p, mask_mode)
+
+    def observation_latents(self, batch: dict[str, Tensor]) -> Tensor:
+        """(B, cameras, 2 * latent) raw (z, zg) latents of an observation: the encoders' work,
+        which the seeds of a stack (one set of encoders) do once for all their episodes."""
+        pairs = [torch.cat([self.encode(c, batch[image_key(c)]), self.encode(c, batch[goal_image_key(c)])], dim=-1)
+                 for c in self.cameras]
+        return torch.stack(pairs, dim=1)
+
+    def masked_state(self, latents: Tensor, mask_p: float = 0.0, mask_mode: str = "paper") -> Tensor:
+        """The standardised state of `observation_latents`, cameras masked by `mask_mode`.
 
         Several cameras: a masked camera's (z, zg) pair is zeroed as in dropout training, and
         a step that would mask every camera masks none (the paper's rule). One camera: its
-        image goes black, so the policy sees a blank view.
+        image goes black, so the policy sees a blank view (the latent of a black image).
         """
-        images = {c: batch[image_key(c)] for c in self.cameras}
-        batch_size, device = images[self.cameras[0]].shape[0], images[self.cameras[0]].device
-        visible = self._evaluation_visibility(batch_size, mask_p, mask_mode)
-        keep = torch.ones_like(visible)
-        if len(self.cameras) == 1:
-            images[self.cameras[0]] = images[self.cameras[0]] * visible.to(device).view(-1, 1, 1, 1)
-        else:
-            keep = visible
-        pairs = [
-            torch.cat([self.encode(c, images[c]), self.encode(c, batch[goal_image_key(c)])], dim=-1)
-            for c in self.cameras
-        ]
-        return self.normalize(torch.stack(pairs, dim=1)) * keep.to(device).unsqueeze(-1)
+        visible = self._evaluation_visibility(latents.shape[0], mask_p, mask_mode).to(latents.device)
+        if len(self.cameras) > 1:
+            return self.normalize(latents) * visible.unsqueeze(-1)
+        camera, dim = self.cameras[0], self.config.latent_dim
+        size = self.config.encoder_config(camera).image_size
+        blank = self.encode(camera, torch.zeros(1, 3, size, size, device=latents.device))
+        z = torch.where(visible, latents[:, 0, :dim], blank)
+        return self.normalize(torch.cat([z, latents[:, 0, dim:]], dim=-1).unsqueeze(1))
 
     def _evaluation_visibility(self, batch_size: int, mask_p: float, mask_mode: str) -> Tensor:
         """(B, cameras) bool, True where a camera's image reaches the policy at this step."""
@@ -179,7 +185,7 @@ class MurmPolicy(PreTrainedPolicy):
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
         state = self.state_from_observation(batch, self.config.eval_mask_p, self.config.eval_mask_mode)
-        return self.actor.act(state, deterministic=True).unsqueeze(1)
+        return self.actor.act(state.flatten(1), deterministic=True).unsqueeze(1)
 
     @torch.no_grad()
     def select_action(self, batch: dict[str, Tensor], **kwargs: Any) -> Tensor:
@@ -191,7 +197,8 @@ class MurmPolicy(PreTrainedPolicy):
         transition = batch if STATE in batch else self.transitions_of_rows(batch["index"])
         device = transition[STATE].device
         with matmul_precision(resolve_precision(self.config.precision, device), device):
-            return self.iql_loss(transition)
+            loss, logged = self.iql_loss(transition)
+        return loss, dict(zip(LOGGED, logged.tolist(), strict=True))  # one device sync, not seven
 
     def transitions_of_rows(self, rows: Tensor) -> dict[str, Tensor]:
         """The replay's transitions from dataset rows `rows` (LeRobot's sampler never picks an
@@ -200,37 +207,41 @@ class MurmPolicy(PreTrainedPolicy):
             raise RuntimeError("this policy holds no training data: make it with the dataset's metadata (lerobot-train)")
         return {k: v.to(rows.device) for k, v in self.replay.transitions(rows).transition().items()}
 
-    def iql_loss(self, transition: dict[str, Tensor]) -> tuple[Tensor, dict[str, float]]:
+    def iql_loss(self, transition: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """IQL's summed loss and the `LOGGED` values as one tensor. Pure: no random draw (the
+        sampler drew the dropout mask) and no host synchronisation, so that a CUDA graph can
+        capture it. A seed stack's transitions and weights have its seed dimension in front;
+        then every loss and logged value has it too (one per seed)."""
         c = self.config
         dtype = compute_dtype(transition[STATE].device)  # the networks' inputs, cast once for all of them
         state, next_state = self.normalize(transition[STATE]).to(dtype), self.normalize(transition[NEXT_STATE]).to(dtype)
         action = transition[ACTION]
         actor_state, q_heads = state, None
-        critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)
+        critic_input = state if c.method == "separated_q" else state.flatten(-2).unsqueeze(-2)
         if c.view_dropout:  # the same cameras vanish from s_t and s_t+1
-            keep = camera_keep_mask(state.shape[0], state.shape[1], c.dropout_p, device=state.device)
+            keep = transition[KEEP]
             actor_state = state * keep.unsqueeze(-1)
             if c.dropout_scope == "all":
                 state, next_state = actor_state, next_state * keep.unsqueeze(-1)
                 if c.dropped_q == "excluded":  # each Q_k sees its own pair; dropped ones leave the mean
                     q_heads = keep
                 else:
-                    critic_input = state if c.method == "separated_q" else state.flatten(1).unsqueeze(1)
+                    critic_input = state if c.method == "separated_q" else state.flatten(-2).unsqueeze(-2)
         with torch.no_grad():
-            q_target = self.critic_target(critic_input, action, q_heads).min(0).values
-            next_v = self.value(next_state.flatten(1)).squeeze(-1)
+            q_target = self.critic_target(critic_input, action, q_heads).min(-2).values
+            next_v = self.value(next_state.flatten(-2)).squeeze(-1)
             td_target = transition[REWARD] + c.discount * (1.0 - transition[DONE]) * next_v
             if c.clip_value:  # a sparse reward in [-cameras, 0] bounds every return
                 q_target = q_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
                 td_target = td_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
-        v = self.value(state.flatten(1)).squeeze(-1)
+        v = self.value(state.flatten(-2)).squeeze(-1)
         value_loss = expectile_loss(q_target - v, c.expectile)
         q = self.critic(critic_input, action, q_heads)
-        critic_loss = (q - td_target).pow(2).mean(1).sum()  # both sets' MSE
+        critic_loss = (q - td_target.unsqueeze(-2)).pow(2).mean(-1).sum(-1)  # both sets' MSE
         weights = advantage_weights(q_target - v, c.temperature, c.max_advantage_weight)
-        log_prob = self.actor.distribution(actor_state).log_prob(action.clamp(-1.0, 1.0)).sum(-1)
-        actor_loss = -(weights * log_prob).mean()
+        log_prob = self.actor.distribution(actor_state.flatten(-2)).log_prob(action.clamp(-1.0, 1.0)).sum(-1)
+        actor_loss = -(weights * log_prob).mean(-1)
         loss = value_loss + critic_loss + actor_loss
-        logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(), v.mean(),
-                              transition[REWARD].mean(), weights.mean()]).detach()
-        return loss, dict(zip(LOGGED, logged.tolist(), strict=True))  # one device sync, not seven
+        logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(-1), v.mean(-1),
+                              transition[REWARD].mean(-1), weights.mean(-1)], dim=-1).detach()
+        return loss, logged

@@ -2,21 +2,28 @@
 
 Batches come from the latents in memory (LatentReplay, over the latent cache of an image
 dataset or the codes of a latent dataset: transitions, next states and hindsight goals
-gathered by index), and go through the same `MurmPolicy.forward`,
-optimizer preset and `update()` as under `lerobot-train`; checkpoints are LeRobot's
-format (`pretrained_model/` with the processors), so `lerobot-eval` loads them.
+gathered by index), and go through the same `MurmPolicy.iql_loss`, optimizer preset and
+target update as under `lerobot-train`; checkpoints are LeRobot's format
+(`pretrained_model/` with the processors), so `lerobot-eval` loads them.
 
 Output folder: `train_config.yaml`, `log.csv` (losses), `eval.csv` (success rate per
 evaluation and masking level), `learning_curve.png`, `checkpoints/last/` (policy +
 `training_state.pt`, written at every evaluation so an interrupted run resumes there),
 and `final_eval.json`.
+
+With `seeds: [a, b, ...]` the seeds train side by side as one stacked model
+(`seed_stack.py`) and evaluate together, each writing `output_dir/seed<k>/` exactly as a
+run of that seed alone writes its folder (on a CPU without native bf16, where stacking
+does not pay, they train one after another). Each seed checkpoints separately, so a run
+stopped between two seeds' checkpoints resumes the seeds that lag until they catch up.
+On CUDA every update is replayed from a CUDA graph (`cuda_graph.py`).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import draccus
@@ -42,11 +49,13 @@ from lerobot_murm.checks import check_writable
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import TASK_NAMES
 from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.policy.cuda_graph import CudaGraph, Updates, make_capturable
 from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
 from lerobot_murm.policy.learning_curve import plot_learning_curve
-from lerobot_murm.policy.modeling_murm import MurmPolicy
+from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
+from lerobot_murm.policy.seed_stack import stacking_pays, train_together
 from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop
 from lerobot_murm.vqvae.frames import dataset_location, open_dataset
 
@@ -64,7 +73,14 @@ class TrainConfig:
     steps: int = 50_000
     batch_size: int = 256
     seed: int = 0
+    # several seeds trained side by side as one stacked model, each in output_dir/seed<k>
+    # (as a run of that seed alone would write output_dir); empty: `seed` alone in output_dir
+    seeds: list[int] = field(default_factory=list)
+    # those seeds stacked (true) or one after another (false); default: stacked where it pays
+    # (GPUs, CPUs with native bf16: seed_stack.stacking_pays)
+    stack: bool | None = None
     device: str = "auto"
+    cuda_graph: bool = True  # on CUDA, replay each update from a CUDA graph (cuda_graph.py)
     log_every: int = 250
     eval_every: int = 5_000
     eval_episodes: int = 20  # validation episodes per learning-curve point during training
@@ -90,8 +106,8 @@ class TrainConfig:
         for name, value in counts.items():
             if value < 1:
                 raise ValueError(f"{name} must be at least 1, got {value}")
-        if self.seed < 0:
-            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if min([self.seed, *self.seeds]) < 0 or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds must be distinct and >= 0, got seed {self.seed}, seeds {self.seeds}")
         if not self.eval_mask_p or not all(0.0 <= p < 1.0 for p in self.eval_mask_p):
             raise ValueError(f"eval_mask_p must be masking levels in [0, 1), got {self.eval_mask_p}")
         validation = range(self.validation_seed, self.validation_seed + max(self.eval_episodes, self.final_eval_episodes))
@@ -116,7 +132,7 @@ def transition_batch(replay: LatentReplay, batch_size: int, generator: torch.Gen
     return replay.sample(batch_size, generator).transition()
 
 
-def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, generator: torch.Generator,
+def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer_state: dict, step: int, generator: torch.Generator,
                     elapsed_s: float) -> None:
     """Write the next `folder` beside it, then swap it in (`checkpointing.swap_in`): a crash at
     any point leaves one complete checkpoint, which the next run finds (`checkpointing.recover`)."""
@@ -128,7 +144,7 @@ def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer, step: int, gene
     postprocessor.save_pretrained(pretrained)
     state = {
         "step": step,
-        "optimizer": optimizer.state_dict(),
+        "optimizer": optimizer_state,
         "generator": generator.get_state(),
         "torch_rng": torch.get_rng_state(),
         "policy": policy.state_dict(),
@@ -152,113 +168,202 @@ def _resume_state(out: Path, last: Path, device: torch.device) -> dict | None:
     return None
 
 
-def train(config: TrainConfig) -> dict:
-    config.policy.load_encoder_settings()  # a wrong encoder_dir fails before any work
-    device = resolve_device(config.device)
-    out = Path(config.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    finished = out / "final_eval.json"
-    if finished.exists():  # a finished run is never redone; asked for more steps, it trains on
-        summary = json.loads(finished.read_text())
-        if summary["steps"] == config.steps:
-            return summary
-        if summary["steps"] > config.steps:
-            raise CheckpointError(f"{out} is trained to {summary['steps']} steps, more than the {config.steps} asked; "
-                                  "move it away or set another output_dir")
-        finished.rename(out / f"final_eval_{summary['steps']}.json")  # kept: the evaluation at that step
-    check_writable(Path(config.cache_dir))
-    last = out / "checkpoints" / "last"
-    state = _resume_state(out, last, device)  # before the expensive steps: a damaged run fails now
-    # the clock starts here: a run's wall time counts its setup (latents, policy) and evaluations
-    loop = TrainingLoop(config.steps, start=state["step"] if state else 0,
-                        earlier_s=state.get("elapsed_s", 0.0) if state else 0.0, desc="murm train")
-    policy_config: MurmConfig = config.policy
+def seed_configs(config: TrainConfig) -> list[TrainConfig]:
+    """One config per seed: `seeds` each in output_dir/seed<k>, else `seed` in output_dir."""
+    if not config.seeds:
+        return [config]
+    return [replace(config, seed=seed, seeds=[], output_dir=str(Path(config.output_dir) / f"seed{seed}"))
+            for seed in config.seeds]
+
+
+def finished_summary(config: TrainConfig) -> dict | None:
+    """The summary of a run finished for `config.steps`; None if it is to train (a run finished
+    for fewer steps trains on, its evaluation at that step kept beside)."""
+    finished = Path(config.output_dir) / "final_eval.json"
+    if not finished.exists():
+        return None
+    summary = json.loads(finished.read_text())
+    if summary["steps"] == config.steps:
+        return summary
+    if summary["steps"] > config.steps:
+        raise CheckpointError(f"{config.output_dir} is trained to {summary['steps']} steps, more than the "
+                              f"{config.steps} asked; move it away or set another output_dir")
+    finished.rename(finished.with_name(f"final_eval_{summary['steps']}.json"))
+    return None
+
+
+@dataclass
+class SeedRun:
+    """One seed's run: its folder, policy, sampling generator and where it stands."""
+
+    config: TrainConfig
+    policy: MurmPolicy
+    generator: torch.Generator
+    step: int = 0
+    earlier_s: float = 0.0  # wall time of earlier sittings
+    optimizer_state: dict | None = None
+    summary: dict | None = None
+
+    @property
+    def out(self) -> Path:
+        return Path(self.config.output_dir)
+
+    @property
+    def last(self) -> Path:
+        return self.out / "checkpoints" / "last"
+
+
+def train(config: TrainConfig) -> list[dict]:
+    """Train `config` (each of its seeds); each seed's summary, as its final_eval.json holds it."""
+    return train_seeds(seed_configs(config))
+
+
+def train_seeds(configs: list[TrainConfig]) -> list[dict]:
+    """Runs that differ only in their seed and output folder, trained side by side."""
+    first = configs[0]
+    if any(replace(c, seed=first.seed, output_dir=first.output_dir) != first for c in configs):
+        raise ValueError("seeds trained together must share every setting but their seed and output_dir")
+    first.policy.load_encoder_settings()  # a wrong encoder_dir fails before any work
+    device = resolve_device(first.device)
+    summaries = [finished_summary(c) for c in configs]
+    todo = [c for c, summary in zip(configs, summaries, strict=True) if summary is None]
+    if not todo:
+        return summaries
+    check_writable(Path(first.cache_dir))
+    for c in todo:
+        Path(c.output_dir).mkdir(parents=True, exist_ok=True)
+    # every state first: a damaged run fails before the expensive steps
+    states = [_resume_state(Path(c.output_dir), Path(c.output_dir) / "checkpoints" / "last", device) for c in todo]
+    sitting = time.perf_counter()  # a run's wall time counts its setup (latents, policy) and evaluations
+    repo_id, root = dataset_location(first.dataset)
+    dataset = open_dataset(repo_id, root)
+    replay = replay_for_dataset(first.policy, dataset, Path(first.cache_dir), device)
+    runs = [_open_run(c, state, dataset, replay, device) for c, state in zip(todo, states, strict=True)]
+    together = stacking_pays(device) if first.stack is None else first.stack
+    while unfinished := [r for r in runs if r.summary is None]:
+        start = min(r.step for r in unfinished)
+        group = [r for r in unfinished if r.step == start]  # seeds a stopped run left behind catch up first
+        until = min([r.step for r in unfinished if r.step > start] + [first.steps])
+        for members in [group] if together else [[r] for r in group]:
+            _train_members(members, until, replay, device, sitting)
+    done = iter(r.summary for r in runs)
+    return [summary if summary is not None else next(done) for summary in summaries]
+
+
+def _open_run(config: TrainConfig, state: dict | None, dataset, replay: LatentReplay, device: torch.device) -> SeedRun:
+    """The seed's policy built as a lone run builds it (its initialisation drawn from its seed),
+    then its checkpoint loaded, or a step-0 checkpoint written (a run stopped before its first
+    evaluation resumes too)."""
     torch.manual_seed(config.seed)
     generator = torch.Generator(device=device).manual_seed(config.seed)
-
-    repo_id, root = dataset_location(config.dataset)
-    dataset = open_dataset(repo_id, root)
-    replay = replay_for_dataset(policy_config, dataset, Path(config.cache_dir), device)
-    policy = build_policy(policy_config, dataset, device)
+    policy = build_policy(config.policy, dataset, device)
     policy.fit_latent_statistics(replay.latents)
-    optimizer = policy_config.get_optimizer_preset().build(policy.get_optim_params())
-
-    if state is not None:
+    run = SeedRun(config, policy, generator)
+    if state is None:
+        optimizer = config.policy.get_optimizer_preset().build(policy.get_optim_params())
+        save_checkpoint(run.last, policy, optimizer.state_dict(), 0, generator, 0.0)
+        run.optimizer_state = optimizer.state_dict()
+    else:
         policy.load_state_dict(state["policy"])
-        optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
+        run.step, run.earlier_s, run.optimizer_state = state["step"], state.get("elapsed_s", 0.0), state["optimizer"]
         for name in ("log.csv", "eval.csv"):
-            set_aside_rows_after(out / name, loop.step)
-        print(f"resuming from step {loop.step} ({last})")
-    else:  # a step-0 checkpoint: a run stopped before its first evaluation resumes too
-        save_checkpoint(last, policy, optimizer, 0, generator, 0.0)
-    draccus.dump(config, (out / "train_config.yaml").open("w"))
+            set_aside_rows_after(run.out / name, run.step)
+        print(f"resuming from step {run.step} ({run.last})")
+    draccus.dump(config, (run.out / "train_config.yaml").open("w"))
+    return run
 
-    seeds = evaluation_seeds(config.eval_episodes, config.validation_seed)
+
+def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device: torch.device, sitting: float) -> None:
+    """Train `runs` (all at one step) together to step `until`, evaluating and checkpointing
+    each as it would alone; at the end of training, their final evaluations and summaries."""
+    config = runs[0].config
+    policy_config: MurmConfig = config.policy
+    if len(runs) > 1:
+        print(f"training seeds {', '.join(str(r.config.seed) for r in runs)} side by side from step {runs[0].step}")
+    updater = train_together([r.policy for r in runs])
+    updater.load_optimizer_states([r.optimizer_state for r in runs])
+    generators = [r.generator for r in runs]
+    graph = CudaGraph(generators) if device.type == "cuda" and config.cuda_graph else None
+    if graph is not None:
+        make_capturable(updater.optimizer)
+    updates = Updates(lambda: updater.step(replay.sample_stacked(config.batch_size, generators)), graph, device=device)
+    loop = TrainingLoop(until, start=runs[0].step, desc="murm train")
+    elapsed = lambda run: run.earlier_s + time.perf_counter() - sitting  # noqa: E731
+
+    def checkpoint() -> None:
+        updater.write_back()
+        for k, run in enumerate(runs):
+            run.step = loop.step
+            run.optimizer_state = updater.optimizer_state(k)
+            save_checkpoint(run.last, run.policy, run.optimizer_state, loop.step, run.generator, elapsed(run))
+
     image_size = policy_config.encoder_config(policy_config.cameras[0]).image_size
-    with Evaluator(config.task, policy_config.cameras, image_size, config.eval_envs) as evaluator:
+    with Evaluator(config.task, policy_config.cameras, image_size, config.eval_envs, len(runs)) as evaluator:
 
-        def run_evaluation(at_step: int, eval_seeds: list[int], split: str, authors: bool = False) -> list[dict]:
+        def run_evaluation(at_step: int, eval_seeds: list[int], split: str, authors: bool = False) -> list[list[dict]]:
+            """Each seed's rows of eval.csv."""
             levels = [(mask_p, "paper") for mask_p in config.eval_mask_p] + ([(1 / 3, "authors")] if authors else [])
-            rows = []
+            rows: list[list[dict]] = [[] for _ in runs]
+            policies = updater.write_back()
             for mask_p, mode in levels:
-                result = evaluator.evaluate(policy, eval_seeds, mask_p, mode)
-                rows.append({"step": at_step, "mask_p": round(mask_p, 4), "success_rate": result.success_rate,
-                             "episodes": len(eval_seeds), "seconds": round(result.seconds, 1), "split": split,
-                             "mask_mode": mode})
+                for own, result in zip(rows, evaluator.evaluate(policies, eval_seeds, mask_p, mode), strict=True):
+                    own.append({"step": at_step, "mask_p": round(mask_p, 4), "success_rate": result.success_rate,
+                                "episodes": len(eval_seeds), "seconds": round(result.seconds, 1), "split": split,
+                                "mask_mode": mode})
             return rows
 
-        policy.train()
-        window: list[dict] = []
-        window_start = time.perf_counter()
+        seeds = evaluation_seeds(config.eval_episodes, config.validation_seed)
+        window_start, window_first = time.perf_counter(), loop.step
         with loop:
             while loop.running():
-                loss, info = policy.forward(transition_batch(replay, config.batch_size, generator))
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                policy.update()
+                updates()
                 loop.advance()
-                window.append(info)
                 if loop.every(config.log_every) or loop.finished:
-                    row = {k: float(np.mean([w[k] for w in window])) for k in LOG_COLUMNS[1:-1]}
-                    row |= {"step": loop.step, "steps_per_s": len(window) / (time.perf_counter() - window_start)}
-                    append_rows(out / "log.csv", LOG_COLUMNS, [row])
-                    loop.show(critic=f"{row['critic_loss']:.3f}", q=f"{row['q']:.1f}")
-                    window, window_start = [], time.perf_counter()
+                    means = updates.read().tolist()  # the only host synchronisation of the loop
+                    rate = (loop.step - window_first) / (time.perf_counter() - window_start)
+                    for run, values in zip(runs, means, strict=True):
+                        row = dict(zip(LOGGED, values, strict=True)) | {"step": loop.step, "steps_per_s": rate}
+                        append_rows(run.out / "log.csv", LOG_COLUMNS, [row])
+                    loop.show(critic=f"{means[0][1]:.3f}", q=f"{means[0][3]:.1f}")
+                    window_start, window_first = time.perf_counter(), loop.step
                 if loop.every(config.eval_every) and not loop.finished:
                     rows = run_evaluation(loop.step, seeds, "validation")
-                    append_rows(out / "eval.csv", EVAL_COLUMNS, rows)
-                    loop.show(success=f"{rows[0]['success_rate']:.2f}")
-                    save_checkpoint(last, policy, optimizer, loop.step, generator, loop.elapsed())
-                    plot_learning_curve(out)
-                    window_start = time.perf_counter()
-            save_checkpoint(last, policy, optimizer, loop.step, generator, loop.elapsed())
+                    for run, own in zip(runs, rows, strict=True):
+                        append_rows(run.out / "eval.csv", EVAL_COLUMNS, own)
+                    loop.show(success=f"{rows[0][0]['success_rate']:.2f}")
+                    checkpoint()
+                    for run in runs:
+                        plot_learning_curve(run.out)
+                    window_start = time.perf_counter()  # the window's rate leaves the evaluation out
+            checkpoint()
             if loop.interrupted:
                 raise TrainingInterrupted(f"stopped at step {loop.step}; run the same command again to resume")
+            if until < config.steps:  # caught up with the seeds ahead: they all go on together
+                return
             # inside the loop's stop handling: a stop request during the final evaluation waits for it
             validation_seeds = evaluation_seeds(config.final_eval_episodes, config.validation_seed)
             final_validation = run_evaluation(loop.step, validation_seeds, "validation", config.eval_authors_masking)
             test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
             final = run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking)
-    append_rows(out / "eval.csv", EVAL_COLUMNS, final_validation + final)
-    plot_learning_curve(out)
-    summary = {
-        "method": policy_config.method,
-        "cameras": policy_config.cameras,
-        "task": config.task,
-        "steps": loop.step,
-        "seed": config.seed,
-        "validation_seeds": [validation_seeds[0], validation_seeds[-1]],
-        "eval_seeds": [test_seeds[0], test_seeds[-1]],  # the test range
-        "final_validation": final_validation,
-        "final": final,
-        "checkpoint": str(last / "pretrained_model"),
-        "wall_s": round(loop.elapsed(), 1),
-    }
-    (out / "final_eval.json").write_text(json.dumps(summary, indent=2) + "\n")
-    return summary
+    for run, validation_rows, test_rows in zip(runs, final_validation, final, strict=True):
+        append_rows(run.out / "eval.csv", EVAL_COLUMNS, validation_rows + test_rows)
+        plot_learning_curve(run.out)
+        run.summary = {
+            "method": policy_config.method,
+            "cameras": policy_config.cameras,
+            "task": config.task,
+            "steps": loop.step,
+            "seed": run.config.seed,
+            "validation_seeds": [validation_seeds[0], validation_seeds[-1]],
+            "eval_seeds": [test_seeds[0], test_seeds[-1]],  # the test range
+            "final_validation": validation_rows,
+            "final": test_rows,
+            "checkpoint": str(run.last / "pretrained_model"),
+            "wall_s": round(elapsed(run), 1),
+            "seeds_together": len(runs),  # its wall time and steps/s are those of all of them
+        }
+        (run.out / "final_eval.json").write_text(json.dumps(run.summary, indent=2) + "\n")
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:

@@ -243,11 +243,11 @@ def test_step_before_reset_is_an_error(make_env):
 
 
 @pytest.mark.parametrize("task", TASK_NAMES)
-def test_two_hundred_random_episodes_keep_the_physics_sane(make_env, task):
+def test_fifty_random_episodes_keep_the_physics_sane(make_env, task):
     """Violent random actions: no NaN, nothing through the table or out of the world, arm in its box."""
     env = make_env(task=task, cameras=("top",), image_size=8, goal_images=False)
     rng = np.random.default_rng(0)
-    for episode in range(200):
+    for episode in range(50):  # 5,000 violent steps per task (physics alone: about 25 s)
         obs, _ = env.reset(seed=episode)
         for _ in range(100):
             obs, *_ = env.step(rng.choice([-1.5, -1.0, 0.0, 1.0, 1.5], size=4))

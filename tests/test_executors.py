@@ -131,6 +131,7 @@ def _frames(root: Path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # two tiny grids side by side, each bounded at 900 s
 def test_the_smoke_grid_on_a_ray_cluster_matches_the_local_executor_and_survives_a_killed_worker(tmp_path, ray_cluster):
     grid = ["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *TINY]
     # the reference: the local executor, one torch thread like every Ray task here (so the same arithmetic)

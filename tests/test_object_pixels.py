@@ -28,7 +28,9 @@ def test_the_object_mask_covers_the_object_in_the_frame_and_in_the_goal_image(ma
             np.testing.assert_array_equal(image, observed)  # the same pixels as the observation
             assert mask.sum() >= MIN_VISIBLE_PIXELS
             inside, outside = image[mask].astype(float), image[~mask].astype(float)
-            assert np.abs(inside - red).sum(axis=1).mean() < np.abs(outside - red).sum(axis=1).mean() / 2
+            # blurred as the authors blur, the object's pixels mix with their neighbours': still
+            # clearly redder than the rest of the image, not twice as red
+            assert np.abs(inside - red).sum(axis=1).mean() < 0.7 * np.abs(outside - red).sum(axis=1).mean()
     assert not np.array_equal(now["global"][1], goal["global"][1])  # the object moves to the goal box
     env.client.resetBasePositionAndOrientation(env.task.object_body, [3.0, 3.0, 0.02], [0, 0, 0, 1])
     assert not env.object_views()["global"][1].any()  # out of view: an empty mask

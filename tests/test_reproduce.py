@@ -40,6 +40,7 @@ def murm(args: list[str], cwd: Path) -> str:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # the real-size smoke grid: ~7 min alone
 def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     args = ["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), f"--work_dir={tmp_path / 'work'}",
             f"--results_dir={tmp_path / 'results'}", *TINY]
@@ -314,6 +315,7 @@ def random_policy_success(task: str, seeds: list[int]) -> float:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # the real-size smoke grid: ~7 min alone
 def test_the_smoke_single_view_cell_learns_a_policy_that_beats_random_actions(tmp_path):
     """The README's smoke grid at its real size (100 demonstrations, 48x48 images), single-view
     cell only: collection, VQ-VAE, IQL and evaluation in the simulator, from nothing."""
@@ -445,7 +447,10 @@ def test_table2_runs_the_papers_epsilons_mapped_to_our_encoders_scale(tiny_pipel
     median = load_reproduce_config(REPO / "configs/reproduce/table2.yaml", [
         "--cells=[{method: single, cameras: [global], epsilon_quantile: [0.5], label: median}]"]).cells[0]
     assert cell_epsilon(median, encoders) == pytest.approx([random["p50"]], rel=1e-6)
-    assert epsilon_scales(cell_epsilon(median, encoders), ["global"], encoders)["epsilon_quantile"] == [0.5]
+    # the share of random frames' distances under the median: 0.5 up to the ties of a tiny encoder's
+    # distances (blurred 16x16 images give many equal ones)
+    assert epsilon_scales(cell_epsilon(median, encoders), ["global"], encoders)["epsilon_quantile"] == \
+        [pytest.approx(0.5, abs=0.05)]
 
 
 @pytest.mark.parametrize("fields, error", [

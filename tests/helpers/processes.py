@@ -22,15 +22,25 @@ def new_tag() -> str:
     return uuid.uuid4().hex
 
 
+# multiprocessing's helpers of this very process (the forkserver, the resource tracker) start
+# lazily inside whichever test first needs them and serve every later test: they are not that
+# test's to kill (a reaped forkserver fails the next test's pool with "No child processes").
+SHARED_HELPERS = ("multiprocessing.forkserver", "multiprocessing.resource_tracker")
+
+
 def tagged_processes(tag: str) -> list[psutil.Process]:
-    """The live processes (not this one) whose environment carries `tag`."""
+    """The live processes (not this one, nor its multiprocessing helpers) whose environment
+    carries `tag`."""
     found = []
     for process in psutil.process_iter():
         if process.pid == os.getpid():
             continue
         try:
-            if process.environ().get(TAG_VARIABLE) == tag and process.status() != psutil.STATUS_ZOMBIE:
-                found.append(process)
+            if process.environ().get(TAG_VARIABLE) != tag or process.status() == psutil.STATUS_ZOMBIE:
+                continue
+            if process.ppid() == os.getpid() and any(h in " ".join(process.cmdline()) for h in SHARED_HELPERS):
+                continue
+            found.append(process)
         except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
             continue
     return found

@@ -106,8 +106,10 @@ class TrainConfig:
         for name, value in counts.items():
             if value < 1:
                 raise ValueError(f"{name} must be at least 1, got {value}")
-        if min([self.seed, *self.seeds]) < 0 or len(set(self.seeds)) != len(self.seeds):
-            raise ValueError(f"seeds must be distinct and >= 0, got seed {self.seed}, seeds {self.seeds}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if (self.seeds and min(self.seeds) < 0) or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds must be distinct and >= 0, got {self.seeds}")
         if not self.eval_mask_p or not all(0.0 <= p < 1.0 for p in self.eval_mask_p):
             raise ValueError(f"eval_mask_p must be masking levels in [0, 1), got {self.eval_mask_p}")
         validation = range(self.validation_seed, self.validation_seed + max(self.eval_episodes, self.final_eval_episodes))

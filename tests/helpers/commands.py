@@ -33,25 +33,22 @@ def run(args: list, *, timeout: float, cwd: Path | None = None, env: dict | None
 
         process = subprocess.Popen([str(a) for a in args], cwd=cwd, env=env, stdout=stdout, stderr=stderr,
                                    text=True, preexec_fn=preexec_fn)
+        interruption: BaseException | None = None
         try:
-            returncode = process.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            kill_tagged(tag)
-            process.wait()
-            out, err = output()
-            pytest.fail(f"{Path(str(args[0])).name} still ran after {timeout} s; killed with everything it started:\n"
-                        f"{out[-3000:]}\n{err[-5000:]}")
-        except BaseException as error:  # pytest-timeout's failure, Ctrl-C: the command goes with the test
-            kill_tagged(tag)
-            process.wait()
-            out, err = output()
-            if isinstance(error, pytest.fail.Exception):
-                pytest.fail(f"{error}\noutput of {Path(str(args[0])).name} so far:\n{out[-3000:]}\n{err[-5000:]}")
-            raise
-        finally:
-            kill_tagged(tag)  # whatever it left running (a rank that outlived its launcher)
+            process.wait(timeout=timeout)
+        except BaseException as error:  # its timeout, pytest-timeout's failure, Ctrl-C: the command goes too
+            interruption = error
+        kill_tagged(tag)  # with whatever it left running (a rank that outlived its launcher)
+        process.wait()
         out, err = output()
-    return subprocess.CompletedProcess(args, returncode, out, err)
+    name = Path(str(args[0])).name
+    if isinstance(interruption, subprocess.TimeoutExpired):
+        pytest.fail(f"{name} still ran after {timeout} s; killed with everything it started:\n{out[-3000:]}\n{err[-5000:]}")
+    if isinstance(interruption, pytest.fail.Exception):
+        pytest.fail(f"{interruption}\noutput of {name} so far:\n{out[-3000:]}\n{err[-5000:]}")
+    if interruption is not None:
+        raise interruption
+    return subprocess.CompletedProcess(args, process.returncode, out, err)
 
 
 def run_command(args: list, cwd: Path, env: dict | None = None, timeout: int = 600) -> str:

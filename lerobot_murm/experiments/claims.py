@@ -79,19 +79,21 @@ class Tables:
         return None if any(c is None for c in found.values()) else found
 
 
+def clearly_below(cell: Cell, other: Cell, factor: float = 1.0) -> bool:
+    """`cell` under `factor` x `other` by more than two standard errors of the difference (the
+    learning curves' rule too, `flattening.py`: no floor there)."""
+    return factor * other.mean - cell.mean > 2 * math.hypot(cell.standard_error, factor * other.standard_error)
+
+
 def compare(cell: Cell, other: Cell, factor: float = 1.0) -> int | None:
     """+1 if `cell` is clearly above `factor` x `other`, -1 if clearly below, None if not
     resolved (within two standard errors of the difference, or both cells below the floor)."""
     if cell.mean < FLOOR_PERCENT and other.mean < FLOOR_PERCENT:
         return None
-    gap = cell.mean - factor * other.mean
-    if abs(gap) <= 2 * math.hypot(cell.standard_error, factor * other.standard_error):
-        return None
-    return 1 if gap > 0 else -1
-
-
-def clearly_below(cell: Cell, other: Cell) -> bool:
-    return compare(cell, other) == -1
+    if clearly_below(cell, other, factor):
+        return -1
+    above = cell.mean - factor * other.mean > 2 * math.hypot(cell.standard_error, factor * other.standard_error)
+    return 1 if above else None
 
 
 def resolved_as(comparison: int | None, holds_when: int) -> str:

@@ -14,10 +14,13 @@ from commands import run, run_command  # noqa: E402
 
 # A grandchild in a session of its own (as torchrun starts its ranks), holding the command's
 # stdout: neither a process-group kill nor a pipe read would get past it.
+# The launcher records the grandchild's pid itself (atomically, before it says "started"): a
+# grandchild killed before its first line of Python still has a pid to check.
 ESCAPING_GRANDCHILD = """
-import subprocess, sys, time
-subprocess.Popen([sys.executable, "-c", "import os, time; open('child.pid', 'w').write(str(os.getpid())); time.sleep(300)"],
-                 start_new_session=True)
+import os, subprocess, sys, time
+child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(300)"], start_new_session=True)
+open('child.pid.tmp', 'w').write(str(child.pid))
+os.replace('child.pid.tmp', 'child.pid')
 print("started", flush=True)
 time.sleep({parent_sleep})
 """

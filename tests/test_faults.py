@@ -1,5 +1,5 @@
 """Fault injection: kill -9 and a full disk during `murm collect`, a full disk while keeping
-an encoder, a torn checkpoint swap."""
+an encoder, a torn checkpoint swap, a training state that would run code."""
 
 import hashlib
 import json
@@ -13,6 +13,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
@@ -254,6 +255,30 @@ def test_an_unreadable_training_state_is_a_clear_error(tmp_path):
         load_state(path)
     with pytest.raises(CheckpointError, match="missing"):
         load_state(tmp_path / "none.pt")
+
+
+class RunsCode:
+    """What a training state from someone else could hold: unpickling it calls a function."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return Path.touch, (self.marker,)
+
+
+def test_a_training_state_holds_plain_values_and_loads_no_code(tmp_path):
+    path, marker = tmp_path / "training_state.pt", tmp_path / "code_ran"
+    torch.save({"step": 5, "trap": RunsCode(marker)}, path)
+    with pytest.raises(CheckpointError, match="holds more than tensors and plain numbers; it is not loaded"):
+        load_state(path)
+    assert not marker.exists()
+    with pytest.raises(TypeError, match=r"state\['rng'\] is a Generator"):  # found when saved, not at resume
+        save_state({"step": 5, "rng": np.random.default_rng(0)}, path)
+    state = {"step": 5, "rng": np.random.default_rng(0).bit_generator.state, "weights": torch.ones(2),
+             "betas": (0.9, 1)}
+    save_state(state, path)
+    assert torch.load(path, weights_only=True)["rng"] == state["rng"]
 
 
 def test_a_resumed_run_sets_log_rows_aside_instead_of_deleting_them(tmp_path):

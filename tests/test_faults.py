@@ -1,5 +1,6 @@
 """Fault injection: kill -9 and a full disk during `murm collect`, a full disk while keeping
-an encoder, a torn checkpoint swap, a training state that would run code."""
+an encoder, a torn checkpoint swap, a training state that would run code,
+kill -9 of the trainer during evaluation."""
 
 import hashlib
 import json
@@ -352,3 +353,52 @@ def test_a_full_disk_while_keeping_an_encoder_leaves_no_kept_encoder_that_looks_
     assert again.returncode == 0, again.stderr[-2000:]
     assert driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
     assert driver.encoder_fingerprint(kept) == driver.encoder_fingerprint(trained)
+
+
+def cpu_ticks(pids: list[int]) -> int:
+    """User and system CPU time of the processes still there, in clock ticks."""
+    ticks = 0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().split(") ")[1].split()
+        except FileNotFoundError:
+            continue
+        ticks += int(fields[11]) + int(fields[12])
+    return ticks
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_trainer_during_evaluation_leaves_no_worker_and_no_traceback(tiny_pipeline, tmp_path):
+    """Orphaned by a kill -9, an evaluation worker used to write a BrokenPipeError traceback into
+    the output it shared with the trainer."""
+    root, encoders = tiny_pipeline
+    policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
+    steps = 2
+    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
+              "cache_dir": str(tmp_path / "cache"), "steps": steps, "batch_size": 16, "log_every": 1,
+              "eval_every": 100, "final_eval_episodes": 20, "eval_envs": 2, "policy": policy}
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(config))
+    output, log = tmp_path / "output.txt", tmp_path / "run" / "log.csv"
+    with output.open("w") as out:  # what `murm train ... > output.txt 2>&1` would hold
+        trainer = subprocess.Popen([str(MURM), "train", "--config", str(path)], stdout=out, stderr=subprocess.STDOUT,
+                                   env=os.environ | {"HF_HUB_OFFLINE": "1"})
+    deadline = time.monotonic() + 600  # a liveness bound for a crowded machine
+    try:
+        while not log.exists() or log.read_text().splitlines()[-1].split(",")[0] != str(steps):
+            assert trainer.poll() is None and time.monotonic() < deadline, output.read_text()[-3000:]
+            time.sleep(0.05)
+        workers = descendants(trainer.pid)
+        idle = cpu_ticks(workers)  # the simulators were made before training and have waited since
+        while cpu_ticks(workers) < idle + 5:  # the final evaluation steps them
+            assert trainer.poll() is None and time.monotonic() < deadline, output.read_text()[-3000:]
+            time.sleep(0.01)
+    finally:
+        trainer.kill()
+        trainer.wait()
+    assert len(workers) == 2
+    while any(alive(pid) for pid in workers):
+        assert time.monotonic() < deadline, f"workers left behind: {[p for p in workers if alive(p)]}"
+        time.sleep(0.1)
+    text = output.read_text()
+    assert "Traceback" not in text and "Error" not in text, text[-3000:]

@@ -1,6 +1,6 @@
 """Fault injection: kill -9 and a full disk during `murm collect`, a full disk while keeping
-an encoder, a torn checkpoint swap, a training state that would run code,
-kill -9 of the trainer during evaluation."""
+an encoder, kill -9 mid encoder save, a torn checkpoint swap, a training state that would run
+code, kill -9 of the trainer during evaluation."""
 
 import hashlib
 import json
@@ -25,6 +25,8 @@ from lerobot_murm.checkpointing import CheckpointError, append_rows, load_state,
 from lerobot_murm.checkpointing import set_aside_rows_after, staging_folder, swap_in
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+from lerobot_murm.vqvae import VQVAE, VQVAEConfig
+from lerobot_murm.vqvae.encoder_files import IncompleteEncoder
 
 MURM = Path(sys.executable).parent / "murm"
 RECIPE = ["--task", "place_in_box", "--cameras", "global,active", "--image-size", "16"]
@@ -346,13 +348,71 @@ def test_a_full_disk_while_keeping_an_encoder_leaves_no_kept_encoder_that_looks_
     full = subprocess.run(command, capture_output=True, text=True, timeout=120, preexec_fn=disk_full_past(1 << 16))
     assert full.returncode == 1 and "File too large" in full.stderr, full.stderr[-2000:]
     kept = driver.kept_encoder_dir(config, root) / "global"
-    assert (kept / "config.json").exists()  # the copy was under way
+    assert kept.exists()  # the copy was under way
     assert not driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
 
     again = subprocess.run(command, capture_output=True, text=True, timeout=120)
     assert again.returncode == 0, again.stderr[-2000:]
     assert driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
     assert driver.encoder_fingerprint(kept) == driver.encoder_fingerprint(trained)
+
+
+KILLED_MID_SAVE = """
+import builtins, io, os, signal, sys
+from lerobot_murm.vqvae import VQVAE, VQVAEConfig
+
+model = VQVAE(VQVAEConfig(codebook_size=64))
+die_at, changes = int(sys.argv[2]), []
+
+
+def changing(real, changes_disk=lambda *args, **kwargs: True):
+    def call(*args, **kwargs):
+        if changes_disk(*args, **kwargs):
+            changes.append(real.__name__)
+            if len(changes) == die_at:
+                os.kill(os.getpid(), signal.SIGKILL)  # kill -9 just before this change to the disk
+        return real(*args, **kwargs)
+    return call
+
+
+def for_writing(file, mode="r", *args, **kwargs):
+    return any(c in mode for c in "wax+")
+
+
+io.open = builtins.open = changing(builtins.open, for_writing)
+os.replace, os.rename, os.unlink, os.rmdir = (changing(f) for f in (os.replace, os.rename, os.unlink, os.rmdir))
+model.save(sys.argv[1])
+"""
+
+
+def test_a_kill_9_anywhere_in_an_encoder_save_leaves_the_previous_encoder_or_none(tmp_path):
+    """Killed before each file it opens for writing, renames or removes, a save that replaces an
+    encoder leaves the previous one, the new one, or none (reported as such), never a mix: the
+    weights used to be written in place and then the config, and a kill between the two left
+    new weights under an empty config."""
+    previous = VQVAE(VQVAEConfig(codebook_size=32))
+    found = []
+    for die_at in range(1, 50):
+        folder = tmp_path / f"killed-at-{die_at}" / "global"
+        previous.save(folder)
+        save = subprocess.run([sys.executable, "-c", KILLED_MID_SAVE, str(folder), str(die_at)], capture_output=True,
+                              text=True, timeout=300)
+        assert save.returncode in (0, -signal.SIGKILL), save.stderr[-2000:]
+        try:
+            encoder = VQVAE.load(folder)
+        except IncompleteEncoder as error:
+            assert f"encoder {folder} is incomplete (config.json missing)" in str(error)
+            found.append("none")
+            previous.save(folder)  # as `murm train-vqvae` run again does
+            encoder = VQVAE.load(folder)
+        else:
+            found.append(encoder.config.codebook_size)  # 32: the previous encoder, 64: the new one
+        if encoder.config.codebook_size == 32:
+            for name, tensor in previous.state_dict().items():
+                assert torch.equal(encoder.state_dict()[name], tensor), name
+        if save.returncode == 0:  # it got past its last change: every point has been tried
+            break
+    assert found[0] == 32 and found[-1] == 64 and set(found) <= {32, "none", 64}, found
 
 
 def cpu_ticks(pids: list[int]) -> int:

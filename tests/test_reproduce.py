@@ -240,6 +240,7 @@ def test_an_encoder_stage_stopped_midway_keeps_the_encoders_it_finished(tmp_path
             raise RuntimeError("the sitting ended")
         out = driver.encoder_dir(config, root) / camera
         out.mkdir(parents=True)
+        (out / "config.json").write_text("{}")
         (out / "model.safetensors").write_bytes(camera.encode())
         (out / "metrics.json").write_text(json.dumps({"interrupted": False,
                                                       "steps": driver.encoder_steps(config, camera)}))

@@ -37,10 +37,12 @@ from lerobot_murm.checkpointing import (
     set_aside_rows_after,
     staging_folder,
     swap_in,
+    write_atomic,
 )
 from lerobot_murm.checks import check_writable
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import TASK_NAMES
+from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
 from lerobot_murm.policy.learning_curve import plot_learning_curve
@@ -153,7 +155,14 @@ def _resume_state(out: Path, last: Path, device: torch.device) -> dict | None:
 
 
 def train(config: TrainConfig) -> dict:
+    """Train, or resume, the run in `config.output_dir`; its summary. One writer per run
+    folder (locking.py): two trainers of one folder used to write every log row twice."""
     config.policy.load_encoder_settings()  # a wrong encoder_dir fails before any work
+    with exclusive(Path(config.output_dir)):
+        return _train(config)
+
+
+def _train(config: TrainConfig) -> dict:
     device = resolve_device(config.device)
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -257,7 +266,7 @@ def train(config: TrainConfig) -> dict:
         "checkpoint": str(last / "pretrained_model"),
         "wall_s": round(loop.elapsed(), 1),
     }
-    (out / "final_eval.json").write_text(json.dumps(summary, indent=2) + "\n")
+    write_atomic(out / "final_eval.json", (json.dumps(summary, indent=2) + "\n").encode())
     return summary
 
 

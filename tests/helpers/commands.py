@@ -16,9 +16,9 @@ import pytest
 OFFLINE = {"HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
 
 
-def run_command(args: list, cwd: Path, env: dict | None = None, timeout: int = 600) -> str:
-    """Run `args` (offline unless `env` is given) and return stdout + stderr; fail the test,
-    with the output's tail, on a non-zero exit or after `timeout` seconds."""
+def run_to_exit(args: list, cwd: Path, env: dict | None = None, timeout: int = 600) -> tuple[int, str, str]:
+    """Run `args` (offline unless `env` is given): its exit code, stdout and stderr; fail the
+    test, with the output's tail, after `timeout` seconds."""
     env = {**os.environ, **OFFLINE} if env is None else env
     process = subprocess.Popen([str(a) for a in args], cwd=cwd, env=env, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, start_new_session=True)
@@ -29,5 +29,12 @@ def run_command(args: list, cwd: Path, env: dict | None = None, timeout: int = 6
         stdout, stderr = process.communicate()
         pytest.fail(f"{args[0]} still ran after {timeout} s; killed with its children:\n"
                     f"{stdout[-3000:]}\n{stderr[-5000:]}")
-    assert process.returncode == 0, f"{args[:3]} failed:\n{stdout[-3000:]}\n{stderr[-5000:]}"
+    return process.returncode, stdout, stderr
+
+
+def run_command(args: list, cwd: Path, env: dict | None = None, timeout: int = 600) -> str:
+    """Run `args` (offline unless `env` is given) and return stdout + stderr; fail the test,
+    with the output's tail, on a non-zero exit or after `timeout` seconds."""
+    code, stdout, stderr = run_to_exit(args, cwd, env, timeout)
+    assert code == 0, f"{args[:3]} failed:\n{stdout[-3000:]}\n{stderr[-5000:]}"
     return stdout + stderr

@@ -44,14 +44,16 @@ with exclusive(sys.argv[1]):
 def holder(folder: Path, how: str) -> tuple[subprocess.Popen, list[str]]:
     """A process that takes `folder`'s lock, then dies of kill -9 (`kill`, `fork`) or releases
     it when its stdin is closed (`release`); with what it printed until it held the lock."""
-    process = subprocess.Popen([sys.executable, "-c", HOLD, str(folder), how], stdin=subprocess.PIPE,
-                               stdout=subprocess.PIPE, text=True)
-    printed = []
-    while not printed or printed[-1] != "locked":
-        line = process.stdout.readline().strip()
-        assert line, f"the holder exited with {process.wait(timeout=60)} before locking"
-        printed.append(line)
-    return process, printed
+    printed = folder.with_name(f"{how}.out")
+    with printed.open("w") as out:
+        process = subprocess.Popen([sys.executable, "-c", HOLD, str(folder), how], stdin=subprocess.PIPE,
+                                   stdout=out, text=True)
+    deadline = time.monotonic() + 300  # a liveness bound for a crowded machine
+    while "locked" not in printed.read_text().split():
+        assert process.poll() in (None, -signal.SIGKILL), f"the holder exited with {process.returncode} before locking"
+        assert time.monotonic() < deadline, "the holder took no lock"
+        time.sleep(0.01)
+    return process, printed.read_text().split()
 
 
 def lock_holder(folder: Path) -> str:
@@ -95,6 +97,7 @@ def test_the_lock_dies_with_its_holder_even_with_a_forked_child_alive(tmp_path, 
             os.kill(int(printed[0]), signal.SIGKILL)
 
 
+@pytest.mark.timeout(600)  # were the holder never to release its lock
 def test_a_job_waits_for_the_holder(tmp_path, monkeypatch):
     """What a `murm reproduce` job does where another job builds the artefact it needs."""
     folder = tmp_path / "dataset"

@@ -1,5 +1,6 @@
 """Crash-safe files for long runs: atomic writes, a checkpoint folder swap that survives a
-kill at any point, training states that fail loudly, and logs that never lose a row.
+kill at any point, training states that fail loudly and load no code, and logs that never
+lose a row.
 
 Shared by `murm train` (policy checkpoints, `log.csv`, `eval.csv`), `murm train-vqvae`
 (its resume state) and `murm collect` (its summary record). Hand-written because neither
@@ -12,6 +13,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import pickle
 import shutil
 from pathlib import Path
 
@@ -22,32 +24,62 @@ class CheckpointError(RuntimeError):
     """A checkpoint or training state that is missing or unreadable where one is expected."""
 
 
+def write_synced(path: Path, data: bytes) -> None:
+    """Write `path` and return once its bytes are on disk."""
+    with Path(path).open("wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def write_atomic(path: Path, data: bytes) -> None:
     """Write `path` so that a reader (or a crash) sees the old content or the new, never a part."""
     path = Path(path)
     tmp = path.with_name(path.name + ".partial")
-    with tmp.open("wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
+    write_synced(tmp, data)
     os.replace(tmp, path)
 
 
+PLAIN = (torch.Tensor, str, int, float, bool, type(None))  # what `torch.load(weights_only=True)` reads back
+
+
+def _check_plain(value: object, where: str) -> None:
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _check_plain(key, where)
+            _check_plain(item, f"{where}[{key!r}]")
+    elif isinstance(value, list | tuple):
+        for i, item in enumerate(value):
+            _check_plain(item, f"{where}[{i}]")
+    elif not isinstance(value, PLAIN):
+        raise TypeError(f"a training state holds tensors and plain numbers only; {where} is a {type(value).__name__}")
+
+
 def save_state(state: dict, path: Path) -> None:
-    """`torch.save`, atomically."""
+    """`torch.save`, atomically, of tensors and plain values only: what `load_state` reads back
+    (checked here, so that a run finds out now rather than when it resumes)."""
+    _check_plain(state, "state")
     buffer = io.BytesIO()
     torch.save(state, buffer)
     write_atomic(path, buffer.getvalue())
 
 
 def load_state(path: Path, device: torch.device | str = "cpu") -> dict:
-    """A training state saved by `save_state`; a clear `CheckpointError` if it cannot be read."""
+    """A training state saved by `save_state`; a clear `CheckpointError` if it cannot be read.
+
+    Loaded with `weights_only=True`: a run folder someone else gave you resumes without
+    running any code its pickle names."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"training state {path} is missing")
     try:
-        return torch.load(path, map_location=device, weights_only=False)
+        return torch.load(path, map_location=device, weights_only=True)
     except Exception as error:  # torch raises RuntimeError, EOFError, UnpicklingError... on a torn file
+        if isinstance(error, pickle.UnpicklingError) and "Weights only load failed" in str(error):
+            raise CheckpointError(
+                f"training state {path} holds more than tensors and plain numbers; it is not loaded, since that "
+                "could run code: move its folder away to start that run over"
+            ) from None
         raise CheckpointError(
             f"cannot read training state {path} ({type(error).__name__}: {str(error).splitlines()[0]}); "
             "it is damaged: move its folder away to start that run over"

@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from contextlib import ExitStack, nullcontext
 from pathlib import Path
+
+from lerobot_murm.library_logs import held_back
 
 
 def _demo(args: argparse.Namespace) -> None:
@@ -80,22 +83,33 @@ def _train_vqvae(args: argparse.Namespace) -> None:
 
 
 def _encode(args: argparse.Namespace) -> None:
-    import json
-
     from lerobot_murm.checks import check_writable
-    from lerobot_murm.collection.dataset import episode_successes
-    from lerobot_murm.vqvae.frames import dataset_location, open_dataset
-    from lerobot_murm.vqvae.latent_cache import build_latent_cache
-    from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances, public_statistics, save_beside_encoder
+    from lerobot_murm.locking import exclusive
+    from lerobot_murm.vqvae.encoder_files import check_encoder
+    from lerobot_murm.vqvae.frames import dataset_location
 
     if args.to_dataset and Path(args.to_dataset).exists():
         raise SystemExit(f"murm encode: {args.to_dataset} exists; remove it or choose another --to-dataset folder")
     repo_id, root = dataset_location(args.dataset)
     cache_dir = Path(args.cache_dir)
     check_writable(cache_dir)
-    missing = [e for e in args.encoders if not (Path(e) / "config.json").is_file()]
-    if missing:
-        raise FileNotFoundError(f"no VQ-VAE checkpoint in {missing[0]} (no config.json); train one with murm train-vqvae")
+    for encoder in args.encoders:
+        check_encoder(Path(encoder))  # a missing or torn encoder fails before any work
+    with ExitStack() as locks:
+        for written in [cache_dir] + ([Path(args.to_dataset)] if args.to_dataset else []):
+            locks.enter_context(exclusive(written))
+        _encode_locked(args, repo_id, root, cache_dir)
+
+
+def _encode_locked(args: argparse.Namespace, repo_id: str, root: Path | None, cache_dir: Path) -> None:
+    import json
+
+    from lerobot_murm.checkpointing import write_atomic
+    from lerobot_murm.collection.dataset import episode_successes
+    from lerobot_murm.vqvae.frames import open_dataset
+    from lerobot_murm.vqvae.latent_cache import build_latent_cache
+    from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances, public_statistics, save_beside_encoder
+
     open_dataset(repo_id, root)  # a missing or unreadable dataset fails here, in one line
     successes = episode_successes(repo_id, root)
     stats, caches = [], []
@@ -106,7 +120,7 @@ def _encode(args: argparse.Namespace) -> None:
         print(f"{cache.camera}: {len(cache.indices)} frames cached; suggested epsilon {stats[-1]['suggested_epsilon']:.2f}")
         caches.append(cache)
     public = [public_statistics(s) for s in stats]
-    (cache_dir / "epsilon.json").write_text(json.dumps(public, indent=2) + "\n")
+    write_atomic(cache_dir / "epsilon.json", (json.dumps(public, indent=2) + "\n").encode())
     plot_distances(stats, cache_dir / "latent_distances.png")
     print(f"wrote {cache_dir / 'epsilon.json'} and {cache_dir / 'latent_distances.png'}")
     if args.to_dataset:
@@ -183,6 +197,13 @@ def _report(args: argparse.Namespace) -> None:
     if args.readme and Path(args.readme).exists():
         filled = update_readme(Path(args.results), Path(args.readme))
         print(f"{args.readme}: results of {', '.join(filled) or 'no grid'} refreshed")
+
+
+def _config_file(value: str) -> str:
+    """`--config`: a missing or unreadable file is bad input (exit 2), found before any work."""
+    if not Path(value).is_file() or not os.access(value, os.R_OK):
+        raise argparse.ArgumentTypeError(f"no readable config file {value}")
+    return value
 
 
 class OneLineErrors(argparse.ArgumentParser):
@@ -273,7 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Further --key=value arguments override the YAML, e.g. --steps=1000 --policy.method=dropout; "
                "--seeds=[0,1,2] trains three seeds side by side (in output_dir/seed0, ...)",
     )
-    tr.add_argument("--config", required=True, help="a YAML file, e.g. configs/place_in_box/separated_q.yaml")
+    tr.add_argument("--config", required=True, type=_config_file,
+                    help="a YAML file, e.g. configs/place_in_box/separated_q.yaml")
     tr.set_defaults(accepts_overrides=True)  # any further --key=value overrides the YAML (draccus)
 
     rep = commands.add_parser(
@@ -281,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="run an experiment grid from demonstrations to tables (skips finished runs)",
         epilog="Further --key=value arguments override the YAML, e.g. --seeds=[0] --train.steps=1000",
     )
-    rep.add_argument("--config", required=True, help="e.g. configs/reproduce/smoke.yaml")
+    rep.add_argument("--config", required=True, type=_config_file, help="e.g. configs/reproduce/smoke.yaml")
     rep.add_argument("--executor", choices=["local", "ray"], default="local",
                      help="local (default) or ray: every stage a Ray task (needs the [ray] extra and a shared work_dir)")
     rep.add_argument("--jobs", type=int, default=1,
@@ -315,13 +337,15 @@ def _exit_code(error: Exception) -> int | None:
     from lerobot_murm.collection.collect import CollectionInterrupted
     from lerobot_murm.collection.durability import UnrepairableCollection
     from lerobot_murm.collection.hub import HubUnavailable
+    from lerobot_murm.locking import FolderInUse
     from lerobot_murm.training_loop import TrainingInterrupted
+    from lerobot_murm.vqvae.encoder_files import IncompleteEncoder
     from lerobot_murm.vqvae.frames import UnreadableDataset
 
     if isinstance(error, ValueError | DraccusException):
         return 2
     failures = (OSError, CheckpointError, CollectionInterrupted, UnrepairableCollection, HubUnavailable,
-                TrainingInterrupted, UnreadableDataset)
+                TrainingInterrupted, UnreadableDataset, FolderInUse, IncompleteEncoder)
     return 1 if isinstance(error, failures) else None
 
 
@@ -342,7 +366,8 @@ def _one_line(error: Exception) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Run a command; its errors end in one line on stderr (exit 2: bad input, 1: failure)."""
+    """Run a command; its errors end in one line on stderr (exit 2: bad input, 1: failure),
+    with what LeRobot and datasets logged as errors held back (library_logs.py)."""
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     debug = args.debug or "--debug" in extra or os.environ.get(DEBUG_VARIABLE, "") not in ("", "0")
@@ -352,15 +377,21 @@ def main(argv: list[str] | None = None) -> None:
               file=sys.stderr)
         raise SystemExit(2)
     args.overrides = extra
+    held = None
     try:
-        args.func(args)
+        with nullcontext() if debug else held_back() as held:
+            args.func(args)
     except Exception as raised:
         error = _unwrap(raised)
         code = _exit_code(error)
         if debug or code is None:
             raise
-        print(f"murm {args.command}: {_one_line(error)} (--debug shows where)", file=sys.stderr)
+        logged = f" and the {held.errors} errors LeRobot or datasets logged" if held and held.errors else ""
+        print(f"murm {args.command}: {_one_line(error)} (--debug shows where{logged})", file=sys.stderr)
         raise SystemExit(code) from None
+    if held and held.errors:
+        print(f"murm {args.command}: note: LeRobot or datasets logged {held.errors} errors, the first: {held.first} "
+              "(--debug shows them all)", file=sys.stderr)
 
 
 if __name__ == "__main__":

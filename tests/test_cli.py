@@ -1,6 +1,5 @@
 """`murm demo`, the README's main command, run for real."""
 
-import subprocess
 import sys
 from pathlib import Path
 
@@ -8,14 +7,15 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run  # noqa: E402
 from quiet import assert_quiet  # noqa: E402
 
 MURM = Path(sys.executable).parent / "murm"
 
 
 def test_murm_demo_writes_the_camera_grid_one_expert_episode_per_task_and_a_small_dataset(tmp_path):
-    result = subprocess.run(
-        [str(MURM), "demo", "--out", str(tmp_path), "--seed", "0"], capture_output=True, text=True, timeout=300
+    result = run(
+        [str(MURM), "demo", "--out", str(tmp_path), "--seed", "0"], timeout=300
     )
     assert result.returncode == 0, result.stderr
     assert_quiet(result.stdout + result.stderr)  # `make run` starts with this command
@@ -31,6 +31,6 @@ def test_murm_demo_writes_the_camera_grid_one_expert_episode_per_task_and_a_smal
 
 
 def test_murm_without_a_command_prints_usage_and_fails():
-    result = subprocess.run([str(MURM)], capture_output=True, text=True, timeout=60)
+    result = run([str(MURM)], timeout=60)
     assert result.returncode == 2
     assert "demo" in result.stderr

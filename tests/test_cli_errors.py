@@ -1,7 +1,8 @@
 """Every bad input ends in one line on stderr that names it, exit 2 (usage) or 1 (failure),
-before any work; --debug or MURM_DEBUG=1 shows the traceback instead."""
+before any work; --debug or MURM_DEBUG=1 shows the traceback instead. So does every failure
+of a torn file or a full disk, with nothing else on stderr (what the libraries logged held back)."""
 
-import subprocess
+import os
 import sys
 from pathlib import Path
 
@@ -9,10 +10,23 @@ import pytest
 import yaml
 
 from lerobot_murm.cli import main
-from lerobot_murm.vqvae import VQVAEConfig
+from lerobot_murm.vqvae import VQVAE, VQVAEConfig
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import OFFLINE, run  # noqa: E402
 
 MURM = Path(sys.executable).parent / "murm"
 COLLECT = ["collect", "--task", "pick_up", "--episodes", "1", "--workers", "1", "--cameras", "global", "--image-size", "16"]
+QUIET = {**os.environ, **OFFLINE, "TQDM_DISABLE": "1"}  # no progress bars: stderr holds only what went wrong
+
+
+def murm_stderr(argv: list, cwd: Path, python: str | None = None) -> tuple[int, list[str]]:
+    """Run the installed `murm argv` (or the script `python` with `argv`) in a subprocess:
+    (exit code, every line of its stderr)."""
+    command = [MURM] if python is None else [sys.executable, "-c", python]
+    result = run([*command, *argv], timeout=300, cwd=cwd, env=QUIET)
+    code, stderr = result.returncode, result.stderr
+    return code, stderr.splitlines()
 
 
 def murm_error(argv: list[str], capsys) -> tuple[int, str]:
@@ -75,6 +89,30 @@ def test_a_torn_dataset_is_a_clear_error(tmp_path, capsys):
     data.write_bytes(data.read_bytes()[:-100])  # as a hard stop leaves an unclosed file
     code, line = murm_error(["train-vqvae", "--dataset", root, "--camera", "global", "--out", tmp_path / "vq"], capsys)
     assert code == 1 and f"cannot read the dataset at {root}" in line and "--resume" in line
+    # `datasets` logs the error twice before raising it: held back, stderr is the one line
+    code, lines = murm_stderr(["train-vqvae", "--dataset", root, "--camera", "global", "--out", tmp_path / "vq"],
+                              tmp_path)
+    assert code == 1 and len(lines) == 1 and lines[0].startswith(f"murm train-vqvae: cannot read the dataset at {root}")
+
+
+FULL_DISK = """
+import errno, sys
+import PIL.Image
+from lerobot_murm.cli import main
+
+def full_disk(*args, **kwargs):
+    raise OSError(errno.ENOSPC, "No space left on device")
+
+PIL.Image.Image.save = full_disk  # every PNG a collection writes
+main(sys.argv[1:])
+"""
+
+
+def test_a_full_disk_during_a_collection_is_one_line(tmp_path):
+    """LeRobot's image writer logged each failed PNG (1,257 lines on a real full disk) and went on."""
+    code, lines = murm_stderr([*COLLECT, "--episodes", "2", "--root", tmp_path / "ds"], tmp_path, python=FULL_DISK)
+    assert code == 1 and len(lines) == 1, lines[:5]
+    assert lines[0].startswith(f"murm collect: cannot write to {tmp_path / 'ds'} (No space left on device): 0 of 2")
 
 
 @pytest.mark.parametrize(
@@ -91,6 +129,34 @@ def test_bad_train_vqvae_arguments(tmp_path, capsys, change, code, message):
     assert not (tmp_path / "vq").exists()
 
 
+def test_a_torn_encoder_is_named_with_its_file(tmp_path, capsys):
+    encoder = tmp_path / "vqvae" / "global"
+    VQVAE(VQVAEConfig()).save(encoder)
+    (encoder / "config.json").write_bytes(b"")  # what a kill between the two files of a save used to leave
+    encode = ["encode", "--dataset", tmp_path, "--encoders", encoder, "--cache-dir", tmp_path / "cache"]
+    code, line = murm_error(encode, capsys)
+    assert code == 1
+    assert f"encoder {encoder} is incomplete (config.json empty); run murm train-vqvae again to finish it" in line
+    (encoder / "config.json").unlink()
+    code, line = murm_error(encode, capsys)
+    assert code == 1 and f"encoder {encoder} is incomplete (config.json missing)" in line
+
+
+@pytest.mark.parametrize("command", ["encode", "train", "check-encoders"])
+def test_a_truncated_encoder_is_one_line(train_yaml, command):
+    folder = train_yaml.parent
+    encoder = folder / "vqvae" / "global"
+    weights = encoder / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:-100])  # a copy cut short
+    argv = {"encode": ["encode", "--dataset", folder, "--encoders", encoder, "--cache-dir", folder / "cache"],
+            "train": ["train", "--config", train_yaml],
+            "check-encoders": ["check-encoders", "--dataset", folder, "--encoders", encoder]}[command]
+    code, lines = murm_stderr(argv, folder)
+    assert code == 1 and len(lines) == 1, lines[-20:]
+    assert lines[0].startswith(f"murm {command}: encoder {encoder} is incomplete (model.safetensors unreadable: ")
+    assert "run murm train-vqvae again to finish it" in lines[0]
+
+
 def test_encode_checks_its_encoders_and_cache_folder_before_encoding(tmp_path, capsys):
     code, line = murm_error(["encode", "--dataset", tmp_path, "--encoders", tmp_path / "none"], capsys)
     assert code == 1 and f"no VQ-VAE checkpoint in {tmp_path / 'none'}" in line
@@ -102,10 +168,9 @@ def test_encode_checks_its_encoders_and_cache_folder_before_encoding(tmp_path, c
 
 @pytest.fixture
 def train_yaml(tmp_path) -> Path:
-    """A `murm train` config whose encoders exist (config files only: validation reads no weights)."""
+    """A `murm train` config whose encoders exist (untrained: validation reads their files, not their weights)."""
     for camera in ("global", "adjacent"):
-        (tmp_path / "vqvae" / camera).mkdir(parents=True)
-        VQVAEConfig(camera=camera).save(tmp_path / "vqvae" / camera / "config.json")
+        VQVAE(VQVAEConfig(camera=camera)).save(tmp_path / "vqvae" / camera)
     config = {"dataset": str(tmp_path / "no_dataset"), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
               "policy": {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"],
                          "encoder_dir": str(tmp_path / "vqvae"), "epsilon": [1.0, 1.0]}}
@@ -131,6 +196,12 @@ def test_bad_train_configs_fail_before_any_work(train_yaml, capsys, overrides, c
     code_seen, line = murm_error(["train", "--config", train_yaml, *overrides], capsys)
     assert (code_seen, message in line) == (code, True), line
     assert not (train_yaml.parent / "run" / "checkpoints").exists()
+
+
+def test_a_missing_config_file_is_bad_input(tmp_path, capsys):
+    for command in ("train", "reproduce"):
+        code, line = murm_error([command, "--config", tmp_path / "none.yaml"], capsys)
+        assert code == 2 and f"argument --config: no readable config file {tmp_path / 'none.yaml'}" in line
 
 
 def test_a_typo_in_a_config_file(train_yaml, capsys):
@@ -183,8 +254,8 @@ def test_debug_shows_the_traceback(tmp_path, monkeypatch):
 
 
 def test_the_installed_command_exits_with_one_line(tmp_path):
-    result = subprocess.run([str(MURM), *COLLECT, "--root", str(tmp_path / "ds"), "--seed", "-5"],
-                            capture_output=True, text=True, timeout=600)
+    result = run([str(MURM), *COLLECT, "--root", str(tmp_path / "ds"), "--seed", "-5"],
+                            timeout=600)
     assert result.returncode == 2
     assert result.stderr.splitlines()[-1] == "murm collect: seed must be >= 0, got -5 (--debug shows where)"
     assert "Traceback" not in result.stderr.split("libtorchcodec loading traceback]")[-1]

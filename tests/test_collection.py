@@ -16,6 +16,9 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.collection import CollectConfig, EpisodeRecipe, collect, run_episode
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run  # noqa: E402
+
 MURM = Path(sys.executable).parent / "murm"
 SMALL = {"cameras": ("global", "active"), "image_size": 16}
 
@@ -145,12 +148,9 @@ def test_an_unwritable_root_is_a_clear_error(tmp_path):
 def test_the_cli_reports_an_unwritable_root(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
-    result = subprocess.run(
+    result = run(
         [str(MURM), "collect", "--task", "pick_up", "--episodes", "1", "--root", str(blocker / "ds")],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+        timeout=120)
     assert result.returncode == 1
     assert result.stderr.splitlines()[-1].startswith(f"murm collect: cannot create {blocker / 'ds'}: {blocker} is a file")
 
@@ -195,14 +195,14 @@ def _worker_pids(main_pid: int) -> list[int]:
 @pytest.mark.parametrize("how", ["ctrl-c", "killed worker"])
 def test_an_interrupted_collection_leaves_a_valid_dataset_and_resumes(tmp_path, how):
     root = tmp_path / "ds"
-    run = BackgroundCollection(root, episodes=40, workers=2)
-    run.wait_for_progress(3, of=40)
+    collection = BackgroundCollection(root, episodes=40, workers=2)
+    collection.wait_for_progress(3, of=40)
     if how == "ctrl-c":
-        run.process.send_signal(signal.SIGINT)
+        collection.process.send_signal(signal.SIGINT)
     else:  # the workers are grandchildren (under the forkserver): kill one of them
-        os.kill(_worker_pids(run.process.pid)[0], signal.SIGKILL)
-    assert run.finish() != 0
-    assert "run again with --resume" in run.stderr
+        os.kill(_worker_pids(collection.process.pid)[0], signal.SIGKILL)
+    assert collection.finish() != 0
+    assert "run again with --resume" in collection.stderr
 
     partial = load(root, "place_in_box")
     saved = partial.meta.total_episodes
@@ -210,13 +210,10 @@ def test_an_interrupted_collection_leaves_a_valid_dataset_and_resumes(tmp_path, 
     assert len(partial) == 100 * saved  # no partial episode
     partial[len(partial) - 1]  # every frame readable
 
-    resumed = subprocess.run(
+    resumed = run(
         [str(MURM), "collect", "--task", "place_in_box", "--episodes", "6" if saved < 6 else str(saved + 1)]
         + ["--workers", "2", "--root", str(root), "--cameras", "global,active", "--image-size", "16", "--resume"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+        timeout=300)
     assert resumed.returncode == 0, resumed.stderr
     final = load(root, "place_in_box")
     target = max(6, saved + 1)

@@ -1,7 +1,7 @@
 """The simulator's contract: spaces, seeding, goal images, success criteria, errors, robustness."""
 
-import subprocess
 import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -12,6 +12,9 @@ from lerobot_murm.env import CAMERA_NAMES, GYM_IDS, TASK_NAMES, MurmEnv
 from lerobot_murm.env.tasks import WORKSPACE_HIGH, WORKSPACE_LOW
 from lerobot_murm.expert import ScriptedExpert
 from lerobot_murm.features import goal_key
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run  # noqa: E402
 
 
 def rollout(env: MurmEnv, seed: int, steps: int, action_seed: int = 0) -> list[dict]:
@@ -312,5 +315,5 @@ def test_the_simulator_prints_nothing_even_when_left_open_at_exit(tmp_path):
         "env = gym.make('murm/PickUp-v0', cameras=('global',), image_size=16)\n"
         "env.reset(seed=0)\n"
     )
-    result = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    result = run([sys.executable, "-c", script], cwd=tmp_path, timeout=120)
     assert result.returncode == 0 and result.stdout == "" and result.stderr == "", result.stdout + result.stderr

@@ -218,5 +218,5 @@ def test_no_job_process_outlives_a_killed_driver_and_a_stopped_run_keeps_its_che
     assert len(logs()) == 2, logs()  # the jobs queued behind them never started
     for log in logs():
         last_logged = int(log.read_text().splitlines()[-1].split(",")[0])
-        state = torch.load(log.parent / "checkpoints" / "last" / "training_state.pt", weights_only=False)
+        state = torch.load(log.parent / "checkpoints" / "last" / "training_state.pt", weights_only=True)
         assert state["step"] >= last_logged > 0  # saved when the run stopped

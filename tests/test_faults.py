@@ -1,5 +1,6 @@
 """Fault injection: kill -9 and a full disk during `murm collect`, a full disk while keeping
-an encoder, a torn checkpoint swap."""
+an encoder, kill -9 mid encoder save, a torn checkpoint swap, a training state that would run
+code, kill -9 of the trainer during evaluation."""
 
 import hashlib
 import json
@@ -13,6 +14,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
@@ -23,6 +25,11 @@ from lerobot_murm.checkpointing import CheckpointError, append_rows, load_state,
 from lerobot_murm.checkpointing import set_aside_rows_after, staging_folder, swap_in
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+from lerobot_murm.vqvae import VQVAE, VQVAEConfig
+from lerobot_murm.vqvae.encoder_files import IncompleteEncoder
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run  # noqa: E402
 
 MURM = Path(sys.executable).parent / "murm"
 RECIPE = ["--task", "place_in_box", "--cameras", "global,active", "--image-size", "16"]
@@ -120,8 +127,8 @@ def test_kill_9_at_random_points_then_resume_gives_the_unbroken_dataset(tmp_path
     collect_until_killed(murm_collect(root, episodes, flush_every, resume=False), root, rng)
     collect_until_killed(murm_collect(root, episodes, flush_every, resume=True), root, rng)
     assert saved_episodes(root) < episodes, "killed too late to test anything"
-    finished = subprocess.run(murm_collect(root, episodes, flush_every, resume=True),
-                              capture_output=True, text=True, timeout=300)
+    finished = run(murm_collect(root, episodes, flush_every, resume=True),
+                              timeout=300)
     assert finished.returncode == 0, finished.stderr[-2000:]
     assert contents(root) == contents(reference)  # the same files, metadata included
 
@@ -154,7 +161,7 @@ def test_kill_9_while_copying_from_noise_donors_then_resume_gives_the_unbroken_d
     collect_until_killed(copy + ["fresh"], root, rng)
     collect_until_killed(copy + ["resume"], root, rng)
     assert saved_episodes(root) < episodes, "killed too late to test anything"
-    finished = subprocess.run(copy + ["resume"], capture_output=True, text=True, timeout=300)
+    finished = run(copy + ["resume"], timeout=300)
     assert finished.returncode == 0, finished.stderr[-2000:]
     assert contents(root) == contents(reference)
 
@@ -169,20 +176,20 @@ def test_a_full_disk_mid_collection_loses_only_the_unflushed_episodes(tmp_path):
                           cameras=("global", "active"), image_size=16, flush_every=flush_every))
     root = tmp_path / "ds"
     command = [str(MURM), "collect", *RECIPE, "--root", str(root), "--workers", "1"]
-    first = subprocess.run(command + ["--episodes", "2", "--flush-every", "2"], capture_output=True, text=True, timeout=300)
+    first = run(command + ["--episodes", "2", "--flush-every", "2"], timeout=300)
     assert first.returncode == 0, first.stderr[-2000:]
     two_episodes = max(p.stat().st_size for p in root.glob("data/*/*.parquet"))
 
     small_disk = disk_full_past(int(1.5 * two_episodes))  # the next data file fails in its third episode
-    full = subprocess.run(command + ["--episodes", str(episodes), "--flush-every", "100", "--resume"],
-                          capture_output=True, text=True, timeout=300, preexec_fn=small_disk)
+    full = run(command + ["--episodes", str(episodes), "--flush-every", "100", "--resume"],
+                          timeout=300, preexec_fn=small_disk)
     assert full.returncode == 1, full.stderr[-2000:]
     assert full.stderr.splitlines()[-1].startswith(f"murm collect: cannot write to {root} (")
     assert "2 of 6 episodes are safely saved; make room, then run again with --resume" in full.stderr
     assert "Traceback" not in full.stderr.split("libtorchcodec loading traceback]")[-1]
 
-    resumed = subprocess.run(command + ["--episodes", str(episodes), "--flush-every", str(flush_every), "--resume"],
-                             capture_output=True, text=True, timeout=300)
+    resumed = run(command + ["--episodes", str(episodes), "--flush-every", str(flush_every), "--resume"],
+                             timeout=300)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "removed" in resumed.stdout  # the torn files of the full disk
     assert contents(root) == contents(reference)
@@ -256,6 +263,30 @@ def test_an_unreadable_training_state_is_a_clear_error(tmp_path):
         load_state(tmp_path / "none.pt")
 
 
+class RunsCode:
+    """What a training state from someone else could hold: unpickling it calls a function."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return Path.touch, (self.marker,)
+
+
+def test_a_training_state_holds_plain_values_and_loads_no_code(tmp_path):
+    path, marker = tmp_path / "training_state.pt", tmp_path / "code_ran"
+    torch.save({"step": 5, "trap": RunsCode(marker)}, path)
+    with pytest.raises(CheckpointError, match="holds more than tensors and plain numbers; it is not loaded"):
+        load_state(path)
+    assert not marker.exists()
+    with pytest.raises(TypeError, match=r"state\['rng'\] is a Generator"):  # found when saved, not at resume
+        save_state({"step": 5, "rng": np.random.default_rng(0)}, path)
+    state = {"step": 5, "rng": np.random.default_rng(0).bit_generator.state, "weights": torch.ones(2),
+             "betas": (0.9, 1)}
+    save_state(state, path)
+    assert torch.load(path, weights_only=True)["rng"] == state["rng"]
+
+
 def test_a_resumed_run_sets_log_rows_aside_instead_of_deleting_them(tmp_path):
     log = tmp_path / "log.csv"
     append_rows(log, ["step", "loss"], [{"step": s, "loss": s / 10} for s in range(1, 6)])
@@ -277,17 +308,16 @@ def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_pipeline, 
     path = tmp_path / "train.yaml"
     path.write_text(yaml.safe_dump(config))
     command = [str(MURM), "train", "--config", str(path)]
-    first = subprocess.run(command, capture_output=True, text=True, timeout=600, env=os.environ | {"HF_HUB_OFFLINE": "1"})
+    first = run(command, timeout=600, env=os.environ | {"HF_HUB_OFFLINE": "1"})
     assert first.returncode == 0, first.stderr[-3000:]
-    run = tmp_path / "run"
-    (run / "final_eval.json").unlink()
-    last = run / "checkpoints" / "last"
+    run_dir = tmp_path / "run"
+    (run_dir / "final_eval.json").unlink()
+    last = run_dir / "checkpoints" / "last"
     last.rename(last.with_name("last.old"))
-    again = subprocess.run(command + ["--steps=6"], capture_output=True, text=True, timeout=600,
-                           env=os.environ | {"HF_HUB_OFFLINE": "1"})
+    again = run(command + ["--steps=6"], timeout=600, env=os.environ | {"HF_HUB_OFFLINE": "1"})
     assert again.returncode == 0, again.stderr[-3000:]
     assert "recovered the checkpoint" in again.stdout and "resuming from step 4" in again.stdout
-    assert [line.split(",")[0] for line in (run / "log.csv").read_text().splitlines()[1:]] == ["1", "2", "3", "4", "5", "6"]
+    assert [line.split(",")[0] for line in (run_dir / "log.csv").read_text().splitlines()[1:]] == ["1", "2", "3", "4", "5", "6"]
 
 
 KEEP_GLOBAL_ENCODER = """
@@ -317,13 +347,119 @@ def test_a_full_disk_while_keeping_an_encoder_leaves_no_kept_encoder_that_looks_
                                                       "steps": driver.encoder_steps(config, "global")}))
     command = [sys.executable, "-c", KEEP_GLOBAL_ENCODER, str(table6), *overrides]
 
-    full = subprocess.run(command, capture_output=True, text=True, timeout=120, preexec_fn=disk_full_past(1 << 16))
+    full = run(command, timeout=120, preexec_fn=disk_full_past(1 << 16))
     assert full.returncode == 1 and "File too large" in full.stderr, full.stderr[-2000:]
     kept = driver.kept_encoder_dir(config, root) / "global"
-    assert (kept / "config.json").exists()  # the copy was under way
+    assert kept.exists()  # the copy was under way
     assert not driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
 
-    again = subprocess.run(command, capture_output=True, text=True, timeout=120)
+    again = run(command, timeout=120)
     assert again.returncode == 0, again.stderr[-2000:]
     assert driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
     assert driver.encoder_fingerprint(kept) == driver.encoder_fingerprint(trained)
+
+
+KILLED_MID_SAVE = """
+import builtins, io, os, signal, sys
+from lerobot_murm.vqvae import VQVAE, VQVAEConfig
+
+model = VQVAE(VQVAEConfig(codebook_size=64))
+die_at, changes = int(sys.argv[2]), []
+
+
+def changing(real, changes_disk=lambda *args, **kwargs: True):
+    def call(*args, **kwargs):
+        if changes_disk(*args, **kwargs):
+            changes.append(real.__name__)
+            if len(changes) == die_at:
+                os.kill(os.getpid(), signal.SIGKILL)  # kill -9 just before this change to the disk
+        return real(*args, **kwargs)
+    return call
+
+
+def for_writing(file, mode="r", *args, **kwargs):
+    return any(c in mode for c in "wax+")
+
+
+io.open = builtins.open = changing(builtins.open, for_writing)
+os.replace, os.rename, os.unlink, os.rmdir = (changing(f) for f in (os.replace, os.rename, os.unlink, os.rmdir))
+model.save(sys.argv[1])
+"""
+
+
+def test_a_kill_9_anywhere_in_an_encoder_save_leaves_the_previous_encoder_or_none(tmp_path):
+    """Killed before each file it opens for writing, renames or removes, a save that replaces an
+    encoder leaves the previous one, the new one, or none (reported as such), never a mix: the
+    weights used to be written in place and then the config, and a kill between the two left
+    new weights under an empty config."""
+    previous = VQVAE(VQVAEConfig(codebook_size=32))
+    found = []
+    for die_at in range(1, 50):
+        folder = tmp_path / f"killed-at-{die_at}" / "global"
+        previous.save(folder)
+        save = run([sys.executable, "-c", KILLED_MID_SAVE, str(folder), str(die_at)], timeout=300)
+        assert save.returncode in (0, -signal.SIGKILL), save.stderr[-2000:]
+        try:
+            encoder = VQVAE.load(folder)
+        except IncompleteEncoder as error:
+            assert f"encoder {folder} is incomplete (config.json missing)" in str(error)
+            found.append("none")
+            previous.save(folder)  # as `murm train-vqvae` run again does
+            encoder = VQVAE.load(folder)
+        else:
+            found.append(encoder.config.codebook_size)  # 32: the previous encoder, 64: the new one
+        if encoder.config.codebook_size == 32:
+            for name, tensor in previous.state_dict().items():
+                assert torch.equal(encoder.state_dict()[name], tensor), name
+        if save.returncode == 0:  # it got past its last change: every point has been tried
+            break
+    assert found[0] == 32 and found[-1] == 64 and set(found) <= {32, "none", 64}, found
+
+
+def cpu_ticks(pids: list[int]) -> int:
+    """User and system CPU time of the processes still there, in clock ticks."""
+    ticks = 0
+    for pid in pids:
+        try:
+            fields = Path(f"/proc/{pid}/stat").read_text().split(") ")[1].split()
+        except FileNotFoundError:
+            continue
+        ticks += int(fields[11]) + int(fields[12])
+    return ticks
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_trainer_during_evaluation_leaves_no_worker_and_no_traceback(tiny_pipeline, tmp_path):
+    """Orphaned by a kill -9, an evaluation worker used to write a BrokenPipeError traceback into
+    the output it shared with the trainer."""
+    root, encoders = tiny_pipeline
+    policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
+    steps = 2
+    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
+              "cache_dir": str(tmp_path / "cache"), "steps": steps, "batch_size": 16, "log_every": 1,
+              "eval_every": 100, "final_eval_episodes": 20, "eval_envs": 2, "policy": policy}
+    path = tmp_path / "train.yaml"
+    path.write_text(yaml.safe_dump(config))
+    output, log = tmp_path / "output.txt", tmp_path / "run" / "log.csv"
+    with output.open("w") as out:  # what `murm train ... > output.txt 2>&1` would hold
+        trainer = subprocess.Popen([str(MURM), "train", "--config", str(path)], stdout=out, stderr=subprocess.STDOUT,
+                                   env=os.environ | {"HF_HUB_OFFLINE": "1"})
+    deadline = time.monotonic() + 600  # a liveness bound for a crowded machine
+    try:
+        while not log.exists() or log.read_text().splitlines()[-1].split(",")[0] != str(steps):
+            assert trainer.poll() is None and time.monotonic() < deadline, output.read_text()[-3000:]
+            time.sleep(0.05)
+        workers = descendants(trainer.pid)
+        idle = cpu_ticks(workers)  # the simulators were made before training and have waited since
+        while cpu_ticks(workers) < idle + 5:  # the final evaluation steps them
+            assert trainer.poll() is None and time.monotonic() < deadline, output.read_text()[-3000:]
+            time.sleep(0.01)
+    finally:
+        trainer.kill()
+        trainer.wait()
+    assert len(workers) == 2
+    while any(alive(pid) for pid in workers):
+        assert time.monotonic() < deadline, f"workers left behind: {[p for p in workers if alive(p)]}"
+        time.sleep(0.1)
+    text = output.read_text()
+    assert "Traceback" not in text and "Error" not in text, text[-3000:]

@@ -1,6 +1,5 @@
 """A test can fail, never hang: commands and whole test runs leave no process behind."""
 
-import subprocess
 import sys
 import textwrap
 import time

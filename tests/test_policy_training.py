@@ -80,7 +80,7 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
     # evaluation at 6 steps kept beside), asked for fewer it refuses in one line
     assert "resuming" not in run_command([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     state_file = run_dir / "checkpoints" / "last" / "training_state.pt"
-    state = torch.load(state_file, weights_only=False)
+    state = torch.load(state_file, weights_only=True)  # tensors and plain numbers only
     assert 0 < state["elapsed_s"] <= summary["wall_s"]
     torch.save(state | {"elapsed_s": 1000.0}, state_file)  # as if the first sitting had taken 1000 s
     out = run_command([BIN / "murm", "train", "--config", config, "--steps=8"], cwd=tmp_path)
@@ -112,7 +112,7 @@ def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoi
     _, stderr = trainer.communicate(timeout=300)
     assert trainer.returncode == 1 and "stopped at step" in stderr, stderr[-3000:]
     assert "BrokenPipeError" not in stderr and "EOFError" not in stderr, stderr[-3000:]
-    state = torch.load(tmp_path / "run" / "checkpoints" / "last" / "training_state.pt", weights_only=False)
+    state = torch.load(tmp_path / "run" / "checkpoints" / "last" / "training_state.pt", weights_only=True)
     assert state["step"] >= 2
 
 

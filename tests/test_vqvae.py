@@ -182,6 +182,7 @@ def test_a_stopped_training_resumes_to_the_same_encoder_as_an_unbroken_one(datas
     assert "run the same command again to resume" in stderr
     stopped = json.loads((out / "metrics.json").read_text())
     assert stopped["interrupted"] and 250 <= stopped["steps"] < steps
+    assert torch.load(out / "training_state.pt", weights_only=True)["step"] == stopped["steps"]  # no code in it
     assert VQVAE.load(out).config.steps == steps  # the encoder so far is usable
 
     resumed = subprocess.run(command, capture_output=True, text=True, timeout=300)

@@ -47,6 +47,7 @@ from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES, MurmEnv
 from lerobot_murm.env.murm_env import TASK_DESCRIPTIONS
 from lerobot_murm.env.cameras import validate_camera_names
 from lerobot_murm.expert import default_noise_std
+from lerobot_murm.locking import exclusive
 
 
 @dataclass
@@ -115,7 +116,14 @@ class CollectionInterrupted(RuntimeError):
 def collect(config: CollectConfig, donors: dict[bool, Donor] | None = None) -> dict:
     """Collect `config.episodes` episodes into `config.root`; returns the collection summary.
     `donors` (noisy flag -> finished collection, `prefixes.noise_donors`): episodes of that
-    flag which the donor holds are copied from it instead of simulated (donors.py)."""
+    flag which the donor holds are copied from it instead of simulated (donors.py). One
+    writer per dataset folder (locking.py): two collections of one folder corrupted it."""
+    check_writable(config.root)
+    with exclusive(config.root):
+        return _collect(config, donors or {})
+
+
+def _collect(config: CollectConfig, donors: dict[bool, Donor]) -> dict:
     dataset = _open_dataset(config)
     summary = murm_dataset.read_summary(config.root)
     if "episode_success" in summary:
@@ -131,7 +139,7 @@ def collect(config: CollectConfig, donors: dict[bool, Donor] | None = None) -> d
     progress = tqdm(total=config.episodes, initial=done, desc=f"collect {config.task}", unit="ep")
     with _deferred_stop_signals() as stop_requested:
         try:
-            for written, episode in enumerate(_episodes(config, range(config.first_episode + done, config.first_episode + config.episodes), donors or {}), start=1):
+            for written, episode in enumerate(_episodes(config, range(config.first_episode + done, config.first_episode + config.episodes), donors), start=1):
                 murm_dataset.save_staged_episode(dataset, episode, description)  # never cut in half
                 successes.append(episode.succeeded)
                 progress.set_postfix(
@@ -178,7 +186,6 @@ def _flush(dataset: LeRobotDataset, config: CollectConfig, successes: list[bool]
 
 def _open_dataset(config: CollectConfig) -> LeRobotDataset:
     root = config.root
-    check_writable(root)
     if root.exists() and config.overwrite:
         _remove_collection(root)
     if root.exists() and not any(root.iterdir()):

@@ -5,8 +5,8 @@ video: at 48x48 PNG is smaller on disk than AV1 and about 25x cheaper to read pe
 sample (see BENCHMARKS.md).
 
 Writing is split so that the expensive part runs in the collection workers:
-`stage_episode` (worker) encodes an episode's PNGs with LeRobot's own `write_image`,
-as LeRobot's image writer would, into a staging folder under the dataset's
+`stage_episode` (worker) encodes an episode's PNGs as LeRobot's image writer would (its
+PIL conversion and compression level), into a staging folder under the dataset's
 `images/` (which `push_to_hub` never uploads); `save_staged_episode` (main process)
 hands them to `LeRobotDataset.save_episode` as a pre-built episode, which embeds them
 in parquet and computes the statistics. A goal image is encoded once per episode.
@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
-from lerobot.datasets.image_writer import write_image
+from lerobot.datasets.image_writer import image_array_to_pil_image
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.checkpointing import write_atomic
@@ -108,7 +108,9 @@ def stage_camera(folder: Path, camera: str, frames: Sequence[T], goal: T, write:
 
 
 def _encode_png(image: np.ndarray, path: Path) -> None:
-    write_image(image, path, compress_level=PNG_COMPRESS_LEVEL)
+    """LeRobot's `write_image`, less its `except`: that logs a failed write (one line per image
+    on a full disk) and goes on, where the collection must stop and say why."""
+    image_array_to_pil_image(image).save(path, compress_level=PNG_COMPRESS_LEVEL)
 
 
 def stage_episode(episode: Episode, dataset_root: Path) -> StagedEpisode:

@@ -5,7 +5,9 @@ Episode i depends on the recipe's seed and i alone (`episodes.run_episode`), so 
 collects episodes [start, stop) exactly as one long collection would, and the merged
 dataset holds the same frames in the same order. Shards live beside the dataset in
 `<root>.shards/`; the merge writes `<root>.merging/` and renames it to `<root>` once its
-summary is written, so a dataset folder is either complete or absent.
+summary is written, so a dataset folder is either complete or absent. A task waits for
+another that holds the folder it is to write (a retry whose first try's lock an NFS lease
+still holds; locking.py).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from lerobot.datasets.aggregate import aggregate_datasets
 
 from lerobot_murm.collection import dataset as murm_dataset
 from lerobot_murm.collection.collect import CollectConfig, collect
+from lerobot_murm.locking import exclusive
 
 
 def is_complete(config: CollectConfig) -> bool:
@@ -46,8 +49,9 @@ def shard_config(config: CollectConfig, episodes: range) -> CollectConfig:
 def collect_shard(config: CollectConfig, episodes: range) -> Path:
     """Collect one shard (resuming a stopped one); a finished shard is left as it is."""
     shard = shard_config(config, episodes)
-    if not is_complete(shard):
-        collect(shard)
+    with exclusive(shard.root, wait=True):
+        if not is_complete(shard):
+            collect(replace(shard, resume=shard.root.exists()))
     return shard.root
 
 
@@ -57,11 +61,13 @@ def merge_shards(config: CollectConfig, ranges: list[range]) -> dict:
     unfinished = [s.root.name for s in shards if not is_complete(s)]
     if unfinished:
         raise ValueError(f"cannot merge {config.root}: shards {unfinished} are not finished")
-    merging = config.root.with_name(f"{config.root.name}.merging")
-    shutil.rmtree(merging, ignore_errors=True)  # what a stopped merge left
-    aggregate_datasets([s.repo_id for s in shards], config.repo_id, roots=[s.root for s in shards], aggr_root=merging)
-    successes = murm_dataset.episode_successes(config.repo_id, merging)
-    summary = murm_dataset.write_summary(merging, config.recipe, successes, config.episodes)
-    merging.rename(config.root)
-    shutil.rmtree(shards[0].root.parent)
+    with exclusive(config.root, wait=True):
+        merging = config.root.with_name(f"{config.root.name}.merging")
+        shutil.rmtree(merging, ignore_errors=True)  # what a stopped merge left
+        aggregate_datasets([s.repo_id for s in shards], config.repo_id, roots=[s.root for s in shards],
+                           aggr_root=merging)
+        successes = murm_dataset.episode_successes(config.repo_id, merging)
+        summary = murm_dataset.write_summary(merging, config.recipe, successes, config.episodes)
+        merging.rename(config.root)
+        shutil.rmtree(shards[0].root.parent)
     return summary

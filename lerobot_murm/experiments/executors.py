@@ -123,7 +123,8 @@ class RayExecutor:
     Ray retries a task whose worker or node died (`max_retries`) and one stopped by a
     SIGTERM (a preemption: the trainer saves its checkpoint first); the retry resumes from
     the checkpoint in the shared `work_dir`. Collections are split into shards of
-    `shard_episodes` episodes, one task each.
+    `shard_episodes` episodes, one task each. Each task locks what it writes there, and
+    waits for a task that holds what it needs; how those locks behave on NFS: locking.py.
     """
 
     def __init__(self, address: str | None = None, cpus_per_task: int = 1, gpus_per_task: float = 0.0,

@@ -21,6 +21,7 @@ import hashlib
 import io
 import json
 import time
+from contextlib import ExitStack
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -40,11 +41,13 @@ from lerobot_murm.expert import default_noise_std
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, read_result, write_tables
+from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import cpu_description, resolve_precision
 from lerobot_murm.policy.train import TrainConfig, train_seeds
 from lerobot_murm.vqvae import VQVAEConfig
+from lerobot_murm.vqvae.encoder_files import CONFIG_FILE, WEIGHTS_FILE, save_encoder_files
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_distance import (
     QUANTILE_KEY,
@@ -82,12 +85,17 @@ def collect_config(config: ReproduceConfig, task: str, cell: CellSpec | None = N
 def ensure_dataset(collect_config: CollectConfig) -> Path:
     """The dataset: already there, cut from a finished larger collection of its recipe, or
     collected (carrying a finished smaller one on, or resuming whatever ran before, on
-    whichever machine; copying the episodes the all-clean and all-noisy collections hold)."""
-    if is_complete(collect_config) or (not collect_config.root.exists() and cut_from_larger(collect_config)):
-        return collect_config.root
-    collect_config = start_from_smaller(collect_config)
-    collect(replace(collect_config, resume=collect_config.root.exists()), donors=noise_donors(collect_config))
-    return collect_config.root
+    whichever machine; copying the episodes the all-clean and all-noisy collections hold).
+    A job that finds another building it waits for it (locking.py)."""
+    root = collect_config.root
+    if is_complete(collect_config):
+        return root
+    with exclusive(root, wait=True):
+        if is_complete(collect_config) or (not root.exists() and cut_from_larger(collect_config)):
+            return root
+        collect_config = start_from_smaller(collect_config)
+        collect(replace(collect_config, resume=root.exists()), donors=noise_donors(collect_config))
+    return root
 
 
 def encoder_is_finished(out: Path, steps: int) -> bool:
@@ -114,8 +122,8 @@ def encoder_root(config: ReproduceConfig, task: str) -> Path:
     return dataset_root(config, task)
 
 
-# an encoder's files, `metrics.json` (what `encoder_is_finished` reads) copied last
-ENCODER_FILES = ("config.json", "model.safetensors", "latent_distance.json", OBJECT_PIXELS_FILE, "metrics.json")
+# the files beside an encoder's weights and config, `metrics.json` (what `encoder_is_finished` reads) copied last
+BESIDE_ENCODER = ("latent_distance.json", OBJECT_PIXELS_FILE, "metrics.json")
 
 
 def kept_encoder_dir(config: ReproduceConfig, root: Path) -> Path:
@@ -127,10 +135,11 @@ def kept_encoder_dir(config: ReproduceConfig, root: Path) -> Path:
 
 
 def copy_encoder(source: Path, target: Path) -> None:
-    target.mkdir(parents=True, exist_ok=True)
-    for name in ENCODER_FILES:
-        if (source / name).exists():
-            write_atomic(target / name, (source / name).read_bytes())
+    with exclusive(target, wait=True):
+        save_encoder_files(target, (source / WEIGHTS_FILE).read_bytes(), (source / CONFIG_FILE).read_bytes())
+        for name in BESIDE_ENCODER:
+            if (source / name).exists():
+                write_atomic(target / name, (source / name).read_bytes())
 
 
 def encoder_fingerprint(folder: Path) -> str | None:
@@ -173,24 +182,34 @@ def current_encoders(config: ReproduceConfig, task: str, cameras: list[str]) -> 
 
 def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
     """A camera's VQ-VAE in `<encoder_dir>/<camera>`, with its epsilon statistics and its object
-    check (`murm check-encoders`) beside it."""
-    device = str(resolve_device(config.device))
+    check (`murm check-encoders`) beside it. A job that finds another making it waits for it
+    (locking.py), then finishes what is left."""
     out = encoder_dir(config, root) / camera
-    repo_id = f"local/{root.name}"
     steps = encoder_steps(config, camera)
-    if not encoder_is_finished(out, steps):
-        vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
-        train_vqvae(repo_id, root, camera, out, vq_config, device=device)
-        (out / OBJECT_PIXELS_FILE).unlink(missing_ok=True)  # it was about the encoder trained before
-    if not (out / "latent_distance.json").exists() or QUANTILE_KEY not in read_statistics(out):
-        cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)
-        save_beside_encoder(distance_statistics(cache, episode_successes(repo_id, root)), out)
-    if not (out / OBJECT_PIXELS_FILE).exists() and config.object_check_episodes:
-        try:
-            check_encoders(repo_id, root, [out], config.object_check_episodes, device=device)
-        except ValueError as error:  # a diagnostic: the grid goes on without it
-            print(f"object check of {camera} skipped: {error}")
+    checked = (out / OBJECT_PIXELS_FILE).exists() or not config.object_check_episodes
+    if encoder_is_finished(out, steps) and _has_statistics(out) and checked:
+        return out
+    device = str(resolve_device(config.device))
+    repo_id = f"local/{root.name}"
+    with exclusive(out, wait=True):
+        if not encoder_is_finished(out, steps):
+            vq_config = replace(VQVAEConfig(), steps=steps, batch_size=config.vqvae.batch_size)
+            train_vqvae(repo_id, root, camera, out, vq_config, device=device)
+            (out / OBJECT_PIXELS_FILE).unlink(missing_ok=True)  # it was about the encoder trained before
+        if not _has_statistics(out):
+            cache = build_latent_cache(repo_id, root, out, Path(config.work_dir) / "latent_cache", device=device)
+            save_beside_encoder(distance_statistics(cache, episode_successes(repo_id, root)), out)
+        if not (out / OBJECT_PIXELS_FILE).exists() and config.object_check_episodes:
+            try:
+                check_encoders(repo_id, root, [out], config.object_check_episodes, device=device)
+            except ValueError as error:  # a diagnostic: the grid goes on without it
+                print(f"object check of {camera} skipped: {error}")
     return out
+
+
+def _has_statistics(encoder: Path) -> bool:
+    """`murm encode`'s epsilon statistics beside the encoder, of the current kind."""
+    return (encoder / "latent_distance.json").exists() and QUANTILE_KEY in read_statistics(encoder)
 
 
 def run_dir(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> Path:
@@ -335,7 +354,11 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[in
     for camera in cell.cameras:
         ensure_encoder(config, encoders_from, camera)
     start = time.perf_counter()
-    summaries = train_seeds([train_config(config, task, cell, seed, root, encoders) for seed in seeds])
+    # waits where a retried Ray task finds its first try's lock still held (an NFS lease, locking.py)
+    with ExitStack() as locks:
+        for seed in seeds:
+            locks.enter_context(exclusive(run_dir(config, task, cell, seed), wait=True))
+        summaries = train_seeds([train_config(config, task, cell, seed, root, encoders) for seed in seeds])
     return [run_result(config, task, cell, root, encoders, summary, start) for summary in summaries]
 
 
@@ -479,6 +502,11 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     for folder in (config.work_dir, config.results_dir):
         check_writable(Path(folder))
     out = Path(config.results_dir) / config.name
+    with exclusive(out):  # one driver per grid; its jobs lock what they build in the work dir
+        return _run_grid(config, executor, out)
+
+
+def _run_grid(config: ReproduceConfig, executor, out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     grid_record = grid_so_far(config, out / "config.yaml")
     record = io.StringIO()

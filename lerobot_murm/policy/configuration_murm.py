@@ -22,6 +22,7 @@ from lerobot_murm.features import ACTION, goal_image_key, image_key, latent_came
 from lerobot_murm.policy.precision import PRECISIONS
 from lerobot_murm.vqvae.code_packing import packed_length
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE, VQVAEConfig
+from lerobot_murm.vqvae.encoder_files import CONFIG_FILE, WEIGHTS_FILE, check_encoder
 
 METHODS = ("single", "concat", "dropout", "separated_q")
 DROPOUT_SCOPES = ("all", "actor")
@@ -185,10 +186,10 @@ class MurmConfig(PreTrainedConfig):
         if self.encoder_dir is None:
             raise ValueError("set encoder_dir: the folder with one VQ-VAE checkpoint per camera (murm train-vqvae)")
         for camera in self.cameras:
-            path = Path(self.encoder_dir) / camera / "config.json"
-            if not path.exists():
-                raise FileNotFoundError(f"no VQ-VAE for camera {camera!r}: {path} does not exist")
-            self.encoders[camera] = json.loads(path.read_text())
+            folder = Path(self.encoder_dir) / camera
+            if not (folder / CONFIG_FILE).exists() and not (folder / WEIGHTS_FILE).exists():
+                raise FileNotFoundError(f"no VQ-VAE for camera {camera!r}: {folder / CONFIG_FILE} does not exist")
+            self.encoders[camera] = check_encoder(folder)  # a torn encoder fails here, before any work
 
     def _suggested_epsilon(self, camera: str) -> float:
         path = Path(self.encoder_dir or "") / camera / LATENT_DISTANCE_FILE

@@ -22,6 +22,7 @@ from functools import partial
 import gymnasium as gym
 import numpy as np
 import torch
+from gymnasium.vector.async_vector_env import _async_worker
 
 from lerobot_murm.env import EPISODE_STEPS, GYM_IDS
 from lerobot_murm.features import goal_image_key, goal_key, image_key
@@ -79,6 +80,16 @@ def act_together(policies: list[MurmPolicy], batch: dict[str, torch.Tensor],
     return torch.func.functional_call(policies[0].actor, weights, (states.flatten(-2),)).flatten(0, 1)
 
 
+def _worker(*args: object) -> None:
+    """Gymnasium's simulator worker, which exits quietly when the trainer is gone (kill -9):
+    its pipe to the trainer then breaks, and gymnasium's worker would report that with a
+    `BrokenPipeError` traceback into the output the trainer shared with it."""
+    try:
+        _async_worker(*args)
+    except (EOFError, ConnectionError):
+        os._exit(1)
+
+
 class Evaluator:
     """Keeps `num_envs` simulator processes per policy evaluated together alive between evaluations."""
 
@@ -89,7 +100,7 @@ class Evaluator:
         kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
         self.envs = gym.vector.AsyncVectorEnv(
             [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs * policies)],
-            context="fork",
+            context="fork", worker=_worker,
         )
 
     def close(self) -> None:

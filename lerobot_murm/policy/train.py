@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import draccus
-import numpy as np
 import torch
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.utils.feature_utils import dataset_to_policy_features
@@ -44,10 +44,12 @@ from lerobot_murm.checkpointing import (
     set_aside_rows_after,
     staging_folder,
     swap_in,
+    write_atomic,
 )
 from lerobot_murm.checks import check_writable
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import TASK_NAMES
+from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.cuda_graph import CudaGraph, Updates, make_capturable
 from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
@@ -221,11 +223,21 @@ def train(config: TrainConfig) -> list[dict]:
 
 
 def train_seeds(configs: list[TrainConfig]) -> list[dict]:
-    """Runs that differ only in their seed and output folder, trained side by side."""
+    """Runs that differ only in their seed and output folder, trained side by side. One
+    writer per run folder (locking.py): two trainers of one folder used to write every log
+    row twice."""
     first = configs[0]
     if any(replace(c, seed=first.seed, output_dir=first.output_dir) != first for c in configs):
         raise ValueError("seeds trained together must share every setting but their seed and output_dir")
     first.policy.load_encoder_settings()  # a wrong encoder_dir fails before any work
+    with ExitStack() as locks:
+        for c in configs:
+            locks.enter_context(exclusive(Path(c.output_dir)))
+        return _train_seeds(configs)
+
+
+def _train_seeds(configs: list[TrainConfig]) -> list[dict]:
+    first = configs[0]
     device = resolve_device(first.device)
     summaries = [finished_summary(c) for c in configs]
     todo = [c for c, summary in zip(configs, summaries, strict=True) if summary is None]
@@ -365,7 +377,7 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
             "wall_s": round(elapsed(run), 1),
             "seeds_together": len(runs),  # its wall time and steps/s are those of all of them
         }
-        (run.out / "final_eval.json").write_text(json.dumps(run.summary, indent=2) + "\n")
+        write_atomic(run.out / "final_eval.json", (json.dumps(run.summary, indent=2) + "\n").encode())
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:

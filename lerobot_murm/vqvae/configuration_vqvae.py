@@ -49,8 +49,8 @@ class VQVAEConfig:
     def latent_dim(self) -> int:
         return self.embedding_dim * self.grid_size**2
 
-    def save(self, path: Path) -> None:
-        Path(path).write_text(json.dumps(asdict(self), indent=2) + "\n")
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2) + "\n"
 
     @classmethod
     def load(cls, path: Path) -> VQVAEConfig:

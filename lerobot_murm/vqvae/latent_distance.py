@@ -24,6 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from lerobot_murm.checkpointing import write_atomic  # noqa: E402
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE  # noqa: E402
 from lerobot_murm.vqvae.latent_cache import LatentCache  # noqa: E402
 
@@ -124,7 +125,8 @@ def public_statistics(stats: dict) -> dict:
 
 def save_beside_encoder(stats: dict, encoder_dir: Path) -> None:
     """Write the statistics where the MURM policy config looks for its default epsilon."""
-    (Path(encoder_dir) / LATENT_DISTANCE_FILE).write_text(json.dumps(public_statistics(stats), indent=2) + "\n")
+    text = json.dumps(public_statistics(stats), indent=2) + "\n"
+    write_atomic(Path(encoder_dir) / LATENT_DISTANCE_FILE, text.encode())
 
 
 def _summary(values: np.ndarray) -> dict:

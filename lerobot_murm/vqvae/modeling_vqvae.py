@@ -12,13 +12,12 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file, save
 from torch import nn
 
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
+from lerobot_murm.vqvae.encoder_files import WEIGHTS_FILE, check_encoder, incomplete, save_encoder_files
 
-WEIGHTS_FILE = "model.safetensors"
-CONFIG_FILE = "config.json"
 QUANTIZE_CHUNK_ROWS = 2048
 
 
@@ -172,16 +171,17 @@ class VQVAE(nn.Module):
 
     # --- checkpoints --------------------------------------------------------------------
     def save(self, directory: Path) -> None:
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        save_file({k: v.contiguous() for k, v in self.state_dict().items()}, directory / WEIGHTS_FILE)
-        self.config.save(directory / CONFIG_FILE)
+        """Weights and config, replacing any encoder in `directory` atomically (encoder_files.py)."""
+        weights = save({k: v.contiguous() for k, v in self.state_dict().items()})
+        save_encoder_files(Path(directory), weights, self.config.to_json().encode())
 
     @classmethod
     def load(cls, directory: Path, device: str | torch.device = "cpu") -> VQVAE:
         directory = Path(directory)
-        if not (directory / WEIGHTS_FILE).exists():
-            raise FileNotFoundError(f"no VQ-VAE checkpoint in {directory} (expected {WEIGHTS_FILE} and {CONFIG_FILE})")
-        model = cls(VQVAEConfig.load(directory / CONFIG_FILE))
-        model.load_state_dict(load_file(directory / WEIGHTS_FILE, device=str(device)))
+        model = cls(VQVAEConfig(**check_encoder(directory)))
+        try:
+            model.load_state_dict(load_file(directory / WEIGHTS_FILE, device=str(device)))
+        except RuntimeError as error:  # the two files of different saves (an encoder torn before saves were atomic)
+            why = f"{WEIGHTS_FILE} does not fit its config: {str(error).splitlines()[0]}"
+            raise incomplete(directory, why) from None
         return model.to(device).eval()

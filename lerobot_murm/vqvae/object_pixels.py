@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_murm.checkpointing import write_atomic
 from lerobot_murm.collection.dataset import read_recipe
 from lerobot_murm.collection.episodes import run_episode
 from lerobot_murm.device import resolve_device
@@ -123,8 +124,8 @@ def check_encoders(repo_id: str, root: Path | None, encoder_dirs: list[Path], ma
     """For each encoder, its held-out episodes' object-pixel metrics, written with a figure
     beside the checkpoint (`object_pixels.json`, `object_reconstructions.png`)."""
     device = resolve_device(device)
+    models = {Path(d): VQVAE.load(Path(d), device=device) for d in encoder_dirs}  # a torn encoder fails first
     dataset = open_dataset(repo_id, root)
-    models = {Path(d): VQVAE.load(Path(d), device=device) for d in encoder_dirs}
     all_episodes = np.arange(dataset.meta.total_episodes)
     held = {d: heldout_episodes(all_episodes, m.config.holdout_fraction, m.config.seed)[:max_episodes]
             for d, m in models.items()}
@@ -145,7 +146,7 @@ def check_encoders(repo_id: str, root: Path | None, encoder_dirs: list[Path], ma
             "episodes": [int(e) for e in held[directory]], "min_visible_pixels": MIN_VISIBLE_PIXELS,
             "reproduced_fraction": float(reproduced.mean()),
         } | object_metrics(errors, camera_frames.masks[reproduced])
-        (directory / OBJECT_PIXELS_FILE).write_text(json.dumps(metrics, indent=2) + "\n")
+        write_atomic(directory / OBJECT_PIXELS_FILE, (json.dumps(metrics, indent=2) + "\n").encode())
         save_object_reconstructions(model.cpu(), stored[reproduced], camera_frames.masks[reproduced],
                                     directory / OBJECT_FIGURE_FILE)
         results.append(metrics)

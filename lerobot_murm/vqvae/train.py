@@ -19,8 +19,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from lerobot_murm.checkpointing import CheckpointError, load_state, save_state  # noqa: E402
+from lerobot_murm.checkpointing import CheckpointError, load_state, save_state, write_atomic  # noqa: E402
 from lerobot_murm.device import resolve_device  # noqa: E402
+from lerobot_murm.locking import exclusive  # noqa: E402
 from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop  # noqa: E402
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig  # noqa: E402
 from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset  # noqa: E402
@@ -137,8 +138,15 @@ def train_vqvae(
     Ctrl-C / SIGTERM stop after the current step: the encoder so far is saved (marked
     `interrupted` in metrics.json) with `training_state.pt`, and `TrainingInterrupted` is
     raised; the same call later resumes from that state and ends with the same weights as
-    an uninterrupted run. The state is also written every CHECKPOINT_EVERY steps.
+    an uninterrupted run. The state is also written every CHECKPOINT_EVERY steps. One
+    writer per encoder folder (locking.py).
     """
+    with exclusive(Path(out_dir)):
+        return _train_vqvae(repo_id, root, camera, Path(out_dir), config, device)
+
+
+def _train_vqvae(repo_id: str, root: Path | None, camera: str, out_dir: Path, config: VQVAEConfig | None,
+                 device: str) -> dict:
     device = resolve_device(device)
     dataset = open_dataset(repo_id, root)
     frames = load_camera_frames(dataset, camera)
@@ -155,7 +163,6 @@ def train_vqvae(
     optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.steps)
 
-    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     state_path = out_dir / STATE_FILE
     done, earlier_s = 0, 0.0
@@ -202,7 +209,7 @@ def train_vqvae(
         "heldout": evaluate(model, holdout if len(holdout) else train_images[:1024], device),
         "device": str(device),
     }
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    write_atomic(out_dir / "metrics.json", (json.dumps(metrics, indent=2) + "\n").encode())
     save_reconstructions(model.cpu(), holdout if len(holdout) else train_images, out_dir / "reconstructions.png")
     if loop.interrupted:
         raise TrainingInterrupted(

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "tests" / "helpers"))
-from processes import TAG_VARIABLE, kill_tagged, new_tag, tagged_processes  # noqa: E402
+from processes import TAG_VARIABLE, kill_tagged, new_tag, tagged_processes
 
 BIN = Path(sys.executable).parent
 CAMERAS = ("global", "adjacent")
@@ -82,8 +82,12 @@ def launch(latents: Path, encoders: Path, out: Path, grace: float) -> tuple[bool
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=10)
-    parser.add_argument("--grace", type=float, default=60.0, help="seconds after 'End of training' before a run counts as hung")
-    parser.add_argument("--keep", type=Path, help="build (or reuse) the tiny pipeline here instead of a temporary folder")
+    parser.add_argument(
+        "--grace", type=float, default=60.0, help="seconds after 'End of training' before a run counts as hung"
+    )
+    parser.add_argument(
+        "--keep", type=Path, help="build (or reuse) the tiny pipeline here instead of a temporary folder"
+    )
     args = parser.parse_args()
     base = args.keep or Path(tempfile.mkdtemp(prefix="murm-accelerate-exit-"))
     latents, encoders = build_latents(base)

@@ -76,7 +76,10 @@ def main() -> None:
         steps_per_s = args.episodes * EPISODE_STEPS / elapsed
         projected_min = 1000 * elapsed / args.episodes / 60
         mb_per_1000 = size / args.episodes * 1000 / 1e6
-        print(f"{workers:>8}{steps_per_s:>10.1f}{args.episodes / elapsed * 60:>14.1f}{projected_min:>12.1f} min{mb_per_1000:>16.0f}")
+        episodes_per_min = args.episodes / elapsed * 60
+        print(
+            f"{workers:>8}{steps_per_s:>10.1f}{episodes_per_min:>14.1f}{projected_min:>12.1f} min{mb_per_1000:>16.0f}"
+        )
     print(f"scaling 1 -> 2 workers: {rows[0][1] / rows[1][1]:.2f}x")
 
 

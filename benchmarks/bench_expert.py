@@ -37,7 +37,8 @@ def outcome(job: tuple[str, float, float, int]) -> str:
 
 def rates(task: str, std: float, noisy_fraction: float, episodes: int, pool: Pool) -> dict[str, float]:
     outcomes = pool.map(outcome, [(task, std, noisy_fraction, i) for i in range(episodes)], chunksize=8)
-    return {kind: float(np.mean([o == kind for o in outcomes])) for kind in ("success", "never lifted", "lifted, not placed")}
+    kinds = ("success", "never lifted", "lifted, not placed")
+    return {kind: float(np.mean([o == kind for o in outcomes])) for kind in kinds}
 
 
 def main() -> None:
@@ -55,7 +56,8 @@ def main() -> None:
                 print(f"| {task} | {' | '.join(cells)} |", flush=True)
             return
         print(f"{args.episodes} seeded episodes per cell (base seed {BASE_SEED})\n")
-        print("| task | noiseless | paper's std 0.1 | default std | default: success | never lifted | lifted, not placed |")
+        print("| task | noiseless | paper's std 0.1 | default std | default: success | never lifted "
+              "| lifted, not placed |")
         print("|---|---:|---:|---:|---:|---:|---:|")
         for task in TASK_NAMES:
             clean = rates(task, 0.0, 0.0, args.episodes, pool)["success"]

@@ -227,7 +227,8 @@ def lerobot_train_s(latents: Path, encoder_dir: Path, cameras: list[str], batch:
     with tempfile.TemporaryDirectory() as out:
         subprocess.run([
             sys.executable, "-m", "lerobot.scripts.lerobot_train", "--policy.type=murm", "--policy.method=separated_q",
-            f"--policy.cameras=[{','.join(cameras)}]", f"--policy.encoder_dir={encoder_dir}", "--policy.epsilon=[2.0,2.0]",
+            f"--policy.cameras=[{','.join(cameras)}]", f"--policy.encoder_dir={encoder_dir}",
+            "--policy.epsilon=[2.0,2.0]",
             f"--policy.device={device.type}", "--dataset.repo_id=local/latents", f"--dataset.root={latents}",
             f"--batch_size={batch}", f"--steps={steps}", "--save_checkpoint=false", f"--num_workers={num_workers}",
             f"--output_dir={out}/run", "--wandb.enable=false",
@@ -379,8 +380,7 @@ def profile_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: t
             times.append(time.process_time() - start)
         return 1e3 * statistics.median(times)
 
-    rows = []
-    for label, updater, gens in (("alone", lone, generators[:1]), (f"{seeds} stacked", stack, generators[1:])):
+    def parts_of(updater, gens) -> dict[str, float]:
         batch_ = replay.sample_stacked(batch, gens)
 
         def forward_backward() -> None:
@@ -405,7 +405,10 @@ def profile_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: t
         polyak = updater.update_targets if isinstance(updater, SeedStack) else updater.policies[0].update
         parts["Polyak"] = ms(polyak)
         parts["whole update"] = ms(lambda: updater.step(replay.sample_stacked(batch, gens)))
-        rows.append((label, len(gens), parts))
+        return parts
+
+    rows = [(label, len(gens), parts_of(updater, gens))
+            for label, updater, gens in (("alone", lone, generators[:1]), (f"{seeds} stacked", stack, generators[1:]))]
     print(f"\n{method}, {n_cameras} camera(s): CPU ms per seed (medians of {repeats})\n")
     print("| part | " + " | ".join(label for label, *_ in rows) + " | stacked / alone |")
     print("|---|" + "---:|" * (len(rows) + 1))
@@ -507,7 +510,8 @@ def main() -> None:
     dtypes = {"fp32": torch.float32, "default": default_dtype}
     peak_before = {label: matmul_gflops(device, dtype) for label, dtype in dtypes.items()}
     results = [measure(m, n, w, args.batch_size, device, args.steps, args.repeats)
-               for w in widths for m, n in cases if not (w == "fixed" and n == 1 and len(widths) > 1)]  # same at 1 camera
+               for w in widths for m, n in cases
+               if not (w == "fixed" and n == 1 and len(widths) > 1)]  # the same at 1 camera
     # the better of two measurements: the stricter ratio
     peak = {label: max(peak_before[label], matmul_gflops(device, dtype)) for label, dtype in dtypes.items()}
     print(f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "

@@ -2,7 +2,8 @@
 
 Not a test. Run it on an otherwise idle machine and copy the table into BENCHMARKS.md:
 
-    .venv/bin/python benchmarks/bench_jobs.py [--jobs 2] [--runs 2] [--steps 1000] [--repeats 2] [--final-eval-episodes 2]
+    .venv/bin/python benchmarks/bench_jobs.py [--jobs 2] [--runs 2] [--steps 1000] [--repeats 2] \\
+        [--final-eval-episodes 2]
 
 The slice: the smoke grid's single-view cell on `--runs` seeds (48x48 images, batch 256,
 the final evaluation cut to 2 episodes so that training dominates). The dataset and the
@@ -23,8 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from lerobot_murm.experiments.executors import make_executor, threads_per_job
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+from lerobot_murm.experiments.executors import make_executor, threads_per_job
 from lerobot_murm.experiments.reproduce import reproduce
 
 REPO = Path(__file__).parents[1]
@@ -59,7 +60,8 @@ def main() -> None:
         config = load_reproduce_config(REPO / "configs/reproduce/smoke.yaml", [
             f"--work_dir={tmp}/work", f"--results_dir={tmp}/results", f"--seeds={list(range(args.runs))}",
             "--collection.episodes=10", "--vqvae.steps=50", f"--train.steps={args.steps}",
-            f"--train.eval_every={args.steps}", f"--train.log_every={args.steps // 4}", f"--train.final_eval_episodes={args.final_eval_episodes}",
+            f"--train.eval_every={args.steps}", f"--train.log_every={args.steps // 4}",
+            f"--train.final_eval_episodes={args.final_eval_episodes}",
             "--train.eval_envs=1",
         ])
         config.cells = [cell for cell in config.cells if cell.method == "single"]
@@ -74,8 +76,8 @@ def main() -> None:
                 rates[jobs] += run_rates
                 print(f"jobs {jobs}: {wall:.1f} s, updates/s per run {run_rates}")
     model = subprocess.run("lscpu | grep 'Model name'", shell=True, capture_output=True, text=True).stdout.strip()
-    print(f"\n{model}\n{args.runs} runs of {args.steps} updates and {args.final_eval_episodes} test episodes, single view, "
-          f"batch 256; {args.repeats} sittings each")
+    print(f"\n{model}\n{args.runs} runs of {args.steps} updates and {args.final_eval_episodes} test episodes, "
+          f"single view, batch 256; {args.repeats} sittings each")
     print("| jobs | torch threads per run | grid wall time (median) | all sittings | updates/s per run (median) |")
     print("|---:|---:|---:|---|---:|")
     for jobs, seconds in times.items():

@@ -78,7 +78,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root, log = args.keep or Path(tmp) / "ds", Path(tmp) / "stderr.txt"
         command = [str(MURM), "collect", "--task", args.task, "--root", str(root), *recipe,
-                   "--episodes", str(args.episodes), "--workers", str(args.workers), "--flush-every", str(args.flush_every)]
+                   "--episodes", str(args.episodes), "--workers", str(args.workers),
+                   "--flush-every", str(args.flush_every)]
         worst = 0
         for kill in range(1, args.kills + 1):
             kept_before = read_summary(root)["episodes"] if (root / SUMMARY_FILE).exists() else 0

@@ -11,16 +11,13 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from lerobot_murm.collection import CollectConfig, collect  # noqa: E402
-from lerobot_murm.env import CAMERA_NAMES, EPISODE_STEPS, TASK_NAMES, MurmEnv  # noqa: E402
-from lerobot_murm.expert import ScriptedExpert  # noqa: E402
-from lerobot_murm.features import goal_key  # noqa: E402
+from lerobot_murm.collection import CollectConfig, collect
+from lerobot_murm.env import CAMERA_NAMES, EPISODE_STEPS, TASK_NAMES, MurmEnv
+from lerobot_murm.expert import ScriptedExpert
+from lerobot_murm.features import goal_key
 
 ROLLOUT_FRAMES = 8
 DEMO_EPISODES = 10
@@ -28,9 +25,8 @@ DEMO_EPISODES = 10
 
 def save_camera_grid(path: Path, seed: int, image_size: int = 48) -> None:
     """One row of current images and one of goal images per task."""
-    fig, axes = plt.subplots(
-        2 * len(TASK_NAMES), len(CAMERA_NAMES), figsize=(2.0 * len(CAMERA_NAMES), 4.2 * len(TASK_NAMES))
-    )
+    fig = Figure(figsize=(2.0 * len(CAMERA_NAMES), 4.2 * len(TASK_NAMES)))
+    axes = fig.subplots(2 * len(TASK_NAMES), len(CAMERA_NAMES))
     for row, task in enumerate(TASK_NAMES):
         env = MurmEnv(task=task, image_size=image_size)
         obs, _ = env.reset(seed=seed)
@@ -43,7 +39,6 @@ def save_camera_grid(path: Path, seed: int, image_size: int = 48) -> None:
                 ax.set_title(f"{task}\n{camera} ({label})" if col == 0 else f"{camera} ({label})", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def run_expert_episode(task: str, seed: int, frames_path: Path) -> dict:
@@ -64,7 +59,8 @@ def run_expert_episode(task: str, seed: int, frames_path: Path) -> dict:
     elapsed = time.perf_counter() - start
     env.close()
 
-    fig, axes = plt.subplots(1, len(frames), figsize=(2.0 * len(frames), 2.3))
+    fig = Figure(figsize=(2.0 * len(frames), 2.3))
+    axes = fig.subplots(1, len(frames))
     for ax, (step, frame) in zip(axes, frames, strict=True):
         ax.imshow(frame)
         ax.set_xticks([]), ax.set_yticks([])
@@ -72,7 +68,6 @@ def run_expert_episode(task: str, seed: int, frames_path: Path) -> dict:
     fig.suptitle(f"{task}, seed {seed}: {'success' if success else 'failure'}", fontsize=10)
     fig.tight_layout()
     fig.savefig(frames_path, dpi=100)
-    plt.close(fig)
     return {
         "task": task,
         "seed": seed,
@@ -96,6 +91,11 @@ def run_demo(out_dir: Path, seed: int = 0) -> list[dict]:
             f"({result['steps_per_s']:.0f} env steps/s, 5 cameras + goals)"
         )
     dataset = out_dir / "demonstrations"
-    summary = collect(CollectConfig(task="place_in_box", root=dataset, episodes=DEMO_EPISODES, workers=2, overwrite=True))
-    print(f"collected {summary['episodes']} place_in_box episodes into {dataset} (expert success {summary['success_rate']:.0%})")
+    summary = collect(
+        CollectConfig(task="place_in_box", root=dataset, episodes=DEMO_EPISODES, workers=2, overwrite=True)
+    )
+    print(
+        f"collected {summary['episodes']} place_in_box episodes into {dataset} "
+        f"(expert success {summary['success_rate']:.0%})"
+    )
     return results

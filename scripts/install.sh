@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Create .venv with Python 3.12 and install lerobot-murm with its test and ray extras
-# (the suite runs a grid on a real local Ray cluster).
+# Create .venv with Python 3.12 and install lerobot-murm with its dev (tests and ruff) and ray
+# extras (the suite runs a grid on a real local Ray cluster).
 #
 # pybullet 3.2.7 has no wheel for Python 3.12 and compiles from source (about 6 minutes
 # on 2 cores). It is built once, with NumPy present so that getCameraImage returns
@@ -29,6 +29,6 @@ if ! ls "$WHEELS"/pybullet-"$PYBULLET_VERSION"-*.whl >/dev/null 2>&1; then
         --wheel-dir "$WHEELS" "pybullet==$PYBULLET_VERSION"
 fi
 .venv/bin/python -m pip install --quiet --no-index --find-links "$WHEELS" "pybullet==$PYBULLET_VERSION"
-.venv/bin/python -m pip install --quiet --find-links "$WHEELS" -e ".[test,ray]"
+.venv/bin/python -m pip install --quiet --find-links "$WHEELS" -e ".[dev,ray]"
 .venv/bin/python -c 'import pybullet, lerobot_murm; assert pybullet.isNumpyEnabled(), "pybullet built without NumPy"'
 echo "installed: $(.venv/bin/python -c 'import lerobot, lerobot_murm; print("lerobot", lerobot.__version__, "lerobot-murm", lerobot_murm.__version__)')"

@@ -4,9 +4,10 @@ The stock `lerobot-eval` runs each checkpoint for one episode on the same seed (
 scene and goal), and the overview frames of its rollout video at the chosen steps go into a
 row under the policy's label:
 
+    RUNS=outputs/murm/runs/table4/place_in_box; LAST=seed0/checkpoints/last/pretrained_model
     .venv/bin/python scripts/rollout_strip.py --task place_in_box --seed 200000 \\
-        --policy "concatenation, training seed 0=outputs/murm/runs/table4/place_in_box/concat-global+adjacent/seed0/checkpoints/last/pretrained_model" \\
-        --policy "MURM dropout, training seed 0=outputs/murm/runs/table4/place_in_box/dropout-global+adjacent/seed0/checkpoints/last/pretrained_model" \\
+        --policy "concatenation, training seed 0=$RUNS/concat-global+adjacent/$LAST" \\
+        --policy "MURM dropout, training seed 0=$RUNS/dropout-global+adjacent/$LAST" \\
         --out results/table4/rollouts_concat_vs_dropout.png
 
 Use a validation seed (200,000-200,099): a picture is something to look at, and nothing is
@@ -69,7 +70,9 @@ def strip(rows: list[tuple[str, list[np.ndarray]]]) -> Image.Image:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--task", required=True)
-    parser.add_argument("--seed", type=int, default=200_000, help="the episode's seed (default: the first validation seed)")
+    parser.add_argument(
+        "--seed", type=int, default=200_000, help="the episode's seed (default: the first validation seed)"
+    )
     parser.add_argument("--policy", action="append", required=True, metavar="LABEL=CHECKPOINT",
                         help="a label and a pretrained_model folder; once per row")
     parser.add_argument("--steps", type=int, nargs="+", default=[0, 15, 30, 50, 75, 99])
@@ -83,7 +86,8 @@ def main() -> None:
             parser.error(f"--policy {entry!r}: expected LABEL=CHECKPOINT, a folder with a config.json")
         frames, success = rollout_frames(Path(checkpoint), args.task, args.seed, args.steps, args.image_size)
         steps = "/".join(map(str, args.steps))
-        rows.append((f"{label}: episode seed {args.seed}, steps {steps}, {'success' if success else 'failure'}", frames))
+        outcome = "success" if success else "failure"
+        rows.append((f"{label}: episode seed {args.seed}, steps {steps}, {outcome}", frames))
         print(f"{label}: {'success' if success else 'failure'}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     partial = args.out.with_name(f".{args.out.name}.partial")

@@ -55,8 +55,8 @@ def tiny_pipeline(tmp_path_factory):
     VQ-VAE per camera, and the latent-distance file the policy takes its epsilon from.
     Returns (dataset_root, encoder_dir); encoder_dir/<camera> are the checkpoints."""
     from lerobot_murm.collection import CollectConfig, collect
-    from lerobot_murm.expert import PAPER_NOISE_STD
     from lerobot_murm.collection.dataset import episode_successes
+    from lerobot_murm.expert import PAPER_NOISE_STD
     from lerobot_murm.vqvae import VQVAEConfig
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
     from lerobot_murm.vqvae.latent_distance import distance_statistics, save_beside_encoder

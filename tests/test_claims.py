@@ -71,7 +71,7 @@ def test_a_difference_within_noise_is_not_resolved(tmp_path):
     claim = "separated Q is the best method under masking"
     for mean, verdict in ((27.0, "not resolved"), (31.0, "not resolved"), (36.0, "not resolved"),
                           (12.0, "does not hold (3 of 3 resolved)"), (37.0, "holds (3 of 3 resolved)")):
-        table4(tmp_path, {task: mean for task in TASKS})
+        table4(tmp_path, dict.fromkeys(TASKS, mean))
         assert verdicts(tmp_path)[claim] == verdict, mean
     table4(tmp_path, {"place_in_box": 40.0, "place_in_random_box": 31.0, "pick_up": 12.0})
     found = verdict_of(tmp_path, claim)
@@ -129,7 +129,7 @@ def test_table3_and_table6_rank_the_views(tmp_path):
 
 
 def test_the_report_and_readme_show_the_claims_with_their_numbers(tmp_path):
-    table4(tmp_path / "results", {task: 31.0 for task in TASKS})
+    table4(tmp_path / "results", dict.fromkeys(TASKS, 31.0))
     shutil.copy(REPO / "configs/reproduce/table4.yaml", tmp_path / "results/table4/config.yaml")
     report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
     assert "## Which of the paper's claims hold here" in report
@@ -156,7 +156,8 @@ def test_every_claim_is_judged_once_the_table_grids_have_run(tmp_path):
         write_rows(tmp_path, config.name, aggregate(runs))
     judged = {v.claim.text: v.verdict for v in judge_claims(tmp_path)}
     assert len(judged) == 13
-    assert all(v.split(" (")[0] in ("holds", "partly", "does not hold", "not resolved") for v in judged.values()), judged
+    verdicts_known = ("holds", "partly", "does not hold", "not resolved")
+    assert all(v.split(" (")[0] in verdicts_known for v in judged.values()), judged
     assert not any("run)" in v for v in judged.values()), judged
 
 
@@ -182,7 +183,8 @@ def demonstrations_table(results: Path, means: dict[str, float]) -> None:
 
 
 def test_table7_more_demonstrations_help_up_to_1000_and_not_beyond(tmp_path):
-    up_to, beyond = "more demonstrations help up to about 1000", "more than about 1000 demonstrations bring no further gain"
+    up_to = "more demonstrations help up to about 1000"
+    beyond = "more than about 1000 demonstrations bring no further gain"
     noisy = {"noisy0": 20.0, "noisy25": 25.0, "noisy50": 30.0}
     demonstrations_table(tmp_path, {"demos250": 10.0, "demos500": 20.0, "demos1000": 40.0, "demos2000": 45.0,
                                     "demos3000": 42.0} | noisy)

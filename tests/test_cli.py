@@ -7,8 +7,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run  # noqa: E402
-from quiet import assert_quiet  # noqa: E402
+from commands import run
+from quiet import assert_quiet
 
 MURM = Path(sys.executable).parent / "murm"
 

@@ -13,10 +13,11 @@ from lerobot_murm.cli import main
 from lerobot_murm.vqvae import VQVAE, VQVAEConfig
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import OFFLINE, run  # noqa: E402
+from commands import OFFLINE, run
 
 MURM = Path(sys.executable).parent / "murm"
-COLLECT = ["collect", "--task", "pick_up", "--episodes", "1", "--workers", "1", "--cameras", "global", "--image-size", "16"]
+COLLECT = ["collect", "--task", "pick_up", "--episodes", "1", "--workers", "1", "--cameras", "global",
+           "--image-size", "16"]
 QUIET = {**os.environ, **OFFLINE, "TQDM_DISABLE": "1"}  # no progress bars: stderr holds only what went wrong
 
 
@@ -161,8 +162,9 @@ def test_encode_checks_its_encoders_and_cache_folder_before_encoding(tmp_path, c
     code, line = murm_error(["encode", "--dataset", tmp_path, "--encoders", tmp_path / "none"], capsys)
     assert code == 1 and f"no VQ-VAE checkpoint in {tmp_path / 'none'}" in line
     (tmp_path / "cache").write_text("a file")
-    code, line = murm_error(["encode", "--dataset", tmp_path, "--encoders", tmp_path, "--cache-dir", tmp_path / "cache"],
-                            capsys)
+    code, line = murm_error(
+        ["encode", "--dataset", tmp_path, "--encoders", tmp_path, "--cache-dir", tmp_path / "cache"], capsys
+    )
     assert code == 1 and "is a file, not a folder" in line
 
 
@@ -213,7 +215,8 @@ def test_a_typo_in_a_config_file(train_yaml, capsys):
 def test_the_whole_reproduce_grid_is_checked_before_collecting(tmp_path, capsys):
     grid = {"name": "bad", "tasks": ["pick_up"], "work_dir": str(tmp_path / "work"),
             "results_dir": str(tmp_path / "results"),
-            "cells": [{"method": "single", "cameras": ["global"]}, {"method": "separated-q", "cameras": ["global", "top"]}]}
+            "cells": [{"method": "single", "cameras": ["global"]},
+                      {"method": "separated-q", "cameras": ["global", "top"]}]}
     path = tmp_path / "grid.yaml"
     path.write_text(yaml.safe_dump(grid))
     code, line = murm_error(["reproduce", "--config", path], capsys)

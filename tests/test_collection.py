@@ -17,7 +17,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_murm.collection import CollectConfig, EpisodeRecipe, collect, run_episode
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run  # noqa: E402
+from commands import run
 
 MURM = Path(sys.executable).parent / "murm"
 SMALL = {"cameras": ("global", "active"), "image_size": 16}
@@ -33,7 +33,9 @@ def columns(dataset: LeRobotDataset) -> dict[str, np.ndarray]:
 
 def test_collected_dataset_loads_with_stock_lerobot_and_has_every_stream(tmp_path):
     root = tmp_path / "ds"
-    summary = collect(CollectConfig(task="pick_up", root=root, episodes=2, workers=1, cameras=("global", "side", "active")))
+    summary = collect(
+        CollectConfig(task="pick_up", root=root, episodes=2, workers=1, cameras=("global", "side", "active"))
+    )
     assert summary["episodes"] == 2 and 0.0 <= summary["success_rate"] <= 1.0
     dataset = load(root, "pick_up")
     assert dataset.meta.total_episodes == 2 and len(dataset) == 200
@@ -104,7 +106,7 @@ def test_the_dataset_is_the_same_whatever_the_number_of_workers(tmp_path):
 def test_an_existing_dataset_is_never_overwritten_without_a_flag(tmp_path):
     root = tmp_path / "ds"
     collect(CollectConfig(task="pick_up", root=root, episodes=1, workers=1, **SMALL))
-    with pytest.raises(FileExistsError, match="--resume .* --overwrite"):
+    with pytest.raises(FileExistsError, match=r"--resume .* --overwrite"):
         collect(CollectConfig(task="pick_up", root=root, episodes=2, workers=1, **SMALL))
     assert load(root, "pick_up").meta.total_episodes == 1
     collect(CollectConfig(task="pick_up", root=root, episodes=2, workers=1, overwrite=True, **SMALL))
@@ -152,7 +154,8 @@ def test_the_cli_reports_an_unwritable_root(tmp_path):
         [str(MURM), "collect", "--task", "pick_up", "--episodes", "1", "--root", str(blocker / "ds")],
         timeout=120)
     assert result.returncode == 1
-    assert result.stderr.splitlines()[-1].startswith(f"murm collect: cannot create {blocker / 'ds'}: {blocker} is a file")
+    expected = f"murm collect: cannot create {blocker / 'ds'}: {blocker} is a file"
+    assert result.stderr.splitlines()[-1].startswith(expected)
 
 
 class BackgroundCollection:
@@ -220,5 +223,6 @@ def test_an_interrupted_collection_leaves_a_valid_dataset_and_resumes(tmp_path, 
     assert final.meta.total_episodes == target and len(final) == 100 * target
 
     fresh = tmp_path / "fresh"
-    collect(CollectConfig(task="place_in_box", root=fresh, episodes=target, workers=2, cameras=("global", "active"), image_size=16))
+    collect(CollectConfig(task="place_in_box", root=fresh, episodes=target, workers=2, cameras=("global", "active"),
+                          image_size=16))
     np.testing.assert_array_equal(columns(final)["action"], columns(load(fresh, "place_in_box"))["action"])

@@ -14,7 +14,7 @@ from lerobot_murm.expert import ScriptedExpert
 from lerobot_murm.features import goal_key
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run  # noqa: E402
+from commands import run
 
 
 def rollout(env: MurmEnv, seed: int, steps: int, action_seed: int = 0) -> list[dict]:
@@ -182,7 +182,7 @@ def test_scripted_expert_succeeds_through_the_real_physics(make_env, task):
     obs, _ = env.reset(seed=0)
     successes = []
     for _ in range(100):
-        obs, reward, terminated, truncated, info = env.step(expert.act(obs))
+        obs, reward, _terminated, _truncated, info = env.step(expert.act(obs))
         successes.append(info["is_success"])
         assert reward == float(info["is_success"])
     assert successes[-1], f"{task}: expert ended in phase {expert.phase}"
@@ -285,7 +285,8 @@ def test_the_authors_box_grid_lands_on_ours():
     from lerobot_murm.env.cameras import AUTHORS_TABLE_TOP_Z, from_authors_frame
     from lerobot_murm.env.tasks import PlaceInBox
 
-    theirs = {from_authors_frame((x, y, AUTHORS_TABLE_TOP_Z))[:2] for x in (0.275, 0.4, 0.525) for y in (-0.25, -0.375, -0.5)}
+    theirs = {from_authors_frame((x, y, AUTHORS_TABLE_TOP_Z))[:2]
+              for x in (0.275, 0.4, 0.525) for y in (-0.25, -0.375, -0.5)}
     ours = {(x, y) for x in PlaceInBox.TRAY_XS for y in PlaceInBox.TRAY_YS}
     assert len(theirs) == 9 and all(min(np.hypot(a - c, b - d) for c, d in ours) < 1e-9 for a, b in theirs)
     assert from_authors_frame((0.0, 0.0, AUTHORS_TABLE_TOP_Z))[2] == 0.0

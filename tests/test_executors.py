@@ -13,9 +13,9 @@ import time
 from pathlib import Path
 
 import pytest
+from test_reproduce import MURM, REPO, TINY
 
 from lerobot_murm.experiments.executors import ProcessExecutor, SerialExecutor, make_executor
-from test_reproduce import MURM, REPO, TINY
 
 RAY = Path(sys.executable).parent / "ray"
 TIMING_FIELDS = ("wall_s", "train_steps_per_s")
@@ -81,7 +81,8 @@ def ray_cluster():
         raise AssertionError(f"ray start {' '.join(args)} failed 3 times:\n{out[-3000:]}")
 
     try:
-        start("--head", f"--port={address.split(':')[1]}", "--num-cpus=1", f"--temp-dir={temp}", "--include-dashboard=false")
+        start("--head", f"--port={address.split(':')[1]}", "--num-cpus=1", f"--temp-dir={temp}",
+              "--include-dashboard=false")
         start(f"--address={address}", "--num-cpus=2")
         yield address
     finally:

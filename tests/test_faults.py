@@ -21,15 +21,23 @@ import torch
 import yaml
 
 from lerobot_murm import checkpointing
-from lerobot_murm.checkpointing import CheckpointError, append_rows, load_state, recover, save_state
-from lerobot_murm.checkpointing import set_aside_rows_after, staging_folder, swap_in
+from lerobot_murm.checkpointing import (
+    CheckpointError,
+    append_rows,
+    load_state,
+    recover,
+    save_state,
+    set_aside_rows_after,
+    staging_folder,
+    swap_in,
+)
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.vqvae import VQVAE, VQVAEConfig
 from lerobot_murm.vqvae.encoder_files import IncompleteEncoder
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run  # noqa: E402
+from commands import run
 
 MURM = Path(sys.executable).parent / "murm"
 RECIPE = ["--task", "place_in_box", "--cameras", "global,active", "--image-size", "16"]
@@ -317,7 +325,8 @@ def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_pipeline, 
     again = run(command + ["--steps=6"], timeout=600, env=os.environ | {"HF_HUB_OFFLINE": "1"})
     assert again.returncode == 0, again.stderr[-3000:]
     assert "recovered the checkpoint" in again.stdout and "resuming from step 4" in again.stdout
-    assert [line.split(",")[0] for line in (run_dir / "log.csv").read_text().splitlines()[1:]] == ["1", "2", "3", "4", "5", "6"]
+    steps = [line.split(",")[0] for line in (run_dir / "log.csv").read_text().splitlines()[1:]]
+    assert steps == ["1", "2", "3", "4", "5", "6"]
 
 
 KEEP_GLOBAL_ENCODER = """

@@ -12,7 +12,7 @@ from lerobot_murm.experiments.flattening import flattens_at
 from lerobot_murm.experiments.report import write_report
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from stored_run import stored_run  # noqa: E402
+from stored_run import stored_run
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -39,7 +39,8 @@ def test_a_choosing_grids_report_says_where_each_curve_flattens_and_what_the_cel
     draccus.dump(config, (grid / "config.yaml").open("w"))
     curves = [("place_in_box", "single-global", [[10000, 0.0, 0.3], [20000, 0.0, 0.7], [30000, 0.0, 0.7],
                                                  [40000, 0.0, 0.71]]),
-              ("pick_up", "single-global", [[10000, 0.0, 0.1], [20000, 0.0, 0.1], [30000, 0.0, 0.3], [40000, 0.0, 0.3]]),
+              ("pick_up", "single-global", [[10000, 0.0, 0.1], [20000, 0.0, 0.1], [30000, 0.0, 0.3],
+                                            [40000, 0.0, 0.3]]),
               ("place_in_box", "dropout-global+adjacent", [[10000, 0.0, 0.0], [20000, 0.0, 0.06], [30000, 0.0, 0.08],
                                                            [40000, 0.0, 0.29], [10000, 0.5, 0.0], [20000, 0.5, 0.3],
                                                            [30000, 0.5, 0.3], [40000, 0.5, 0.3]])]

@@ -42,7 +42,7 @@ def wait_for_pid_file(path: Path) -> int:
 
 
 def test_a_command_past_its_timeout_fails_with_its_output_and_nothing_it_started_survives(tmp_path):
-    with pytest.raises(pytest.fail.Exception, match="(?s)killed with everything it started.*started"):
+    with pytest.raises(pytest.fail.Exception, match=r"(?s)killed with everything it started.*started"):
         run_command([sys.executable, "-c", ESCAPING_GRANDCHILD.format(parent_sleep=300)], tmp_path, timeout=5)
     assert not is_running(wait_for_pid_file(tmp_path / "child.pid"))
 

@@ -15,9 +15,8 @@ import pytest
 import torch
 
 from lerobot_murm.collection import CollectConfig, collect
-from lerobot_murm.expert import PAPER_NOISE_STD
 from lerobot_murm.collection.hub import pull_dataset, push_dataset
-
+from lerobot_murm.expert import PAPER_NOISE_STD
 
 MURM = Path(sys.executable).parent / "murm"
 
@@ -25,8 +24,8 @@ MURM = Path(sys.executable).parent / "murm"
 @pytest.fixture(scope="module")
 def collected(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("collected") / "ds"
-    collect(CollectConfig(task="place_in_random_box", root=root, episodes=2, workers=1, cameras=("global", "top"), image_size=16,
-        noise_std=PAPER_NOISE_STD))
+    collect(CollectConfig(task="place_in_random_box", root=root, episodes=2, workers=1, cameras=("global", "top"),
+                          image_size=16, noise_std=PAPER_NOISE_STD))
     return root
 
 

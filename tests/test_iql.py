@@ -72,7 +72,8 @@ def test_camera_dropout_drops_each_camera_at_rate_p_and_never_all():
 
 def _head(q: DoubleQ, which: int, group: int, x: torch.Tensor) -> torch.Tensor:
     """Q head `group` of set `which`, computed by hand from the ensemble's weights."""
-    h = x @ q.first.weight[group, :, which * q.hidden : (which + 1) * q.hidden] + q.first.bias[group, 0, which * q.hidden : (which + 1) * q.hidden]
+    columns = slice(which * q.hidden, (which + 1) * q.hidden)
+    h = x @ q.first.weight[group, :, columns] + q.first.bias[group, 0, columns]
     head = which * q.groups + group
     for layer in q.body:
         h = torch.relu(h) @ layer.weight[head] + layer.bias[head, 0]
@@ -91,7 +92,8 @@ def test_separated_q_averages_one_head_per_camera():
     # camera 1's input does not reach camera 0's heads
     other = state.clone()
     other[:, 1] += 1.0
-    torch.testing.assert_close(_head(q, 0, 0, torch.cat([other[:, 0], action], -1)), _head(q, 0, 0, torch.cat([state[:, 0], action], -1)))
+    torch.testing.assert_close(_head(q, 0, 0, torch.cat([other[:, 0], action], -1)),
+                               _head(q, 0, 0, torch.cat([state[:, 0], action], -1)))
 
 
 def test_double_q_on_the_whole_state_has_two_independent_heads():
@@ -113,4 +115,5 @@ def test_networks_have_the_paper_widths_and_depths():
     actions = policy.act(torch.randn(7, 1440), deterministic=False)
     assert actions.shape == (7, 4) and actions.abs().max() <= 1.0
     std = policy.distribution(torch.randn(2, 1440)).stddev
-    assert torch.all(std >= torch.exp(torch.tensor(-2.0)) - 1e-6) and torch.all(std <= torch.exp(torch.tensor(-1.0)) + 1e-6)
+    assert torch.all(std >= torch.exp(torch.tensor(-2.0)) - 1e-6)
+    assert torch.all(std <= torch.exp(torch.tensor(-1.0)) + 1e-6)

@@ -16,15 +16,15 @@ from lerobot.policies.factory import make_policy, make_pre_post_processors
 from scipy import stats
 
 from lerobot_murm.collection.hub import pull_dataset, push_dataset
+from lerobot_murm.features import latent_goal_key, latent_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.replay import replay_for_dataset
-from lerobot_murm.features import latent_goal_key, latent_key
 from lerobot_murm.vqvae.code_packing import unpack_codes
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_dataset import read_latent_caches
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run_command  # noqa: E402
+from commands import run_command
 
 BIN = Path(sys.executable).parent
 SCRIPTS = Path(__file__).parents[1] / "scripts"
@@ -105,7 +105,8 @@ def test_both_trainers_draw_the_same_transitions(tiny_pipeline, latents):
     config = murm_config(encoders)
     policy = make_policy(config, ds_meta=dataset.meta)
     preprocessor, _ = make_pre_post_processors(config, dataset_stats=dataset.meta.stats)
-    sampler = EpisodeAwareSampler(dataset.meta.episodes["dataset_from_index"], dataset.meta.episodes["dataset_to_index"],
+    episodes = dataset.meta.episodes
+    sampler = EpisodeAwareSampler(episodes["dataset_from_index"], episodes["dataset_to_index"],
                                   drop_n_last_frames=config.drop_n_last_frames, shuffle=True, seed=0)
     loader = torch.utils.data.DataLoader(dataset, batch_size=256, sampler=sampler)
     torch.manual_seed(0)

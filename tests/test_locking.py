@@ -19,7 +19,7 @@ from lerobot_murm import locking
 from lerobot_murm.locking import FolderInUse, exclusive, lock_file
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import OFFLINE, run  # noqa: E402
+from commands import OFFLINE, run
 
 MURM = Path(sys.executable).parent / "murm"
 QUIET = {**os.environ, **OFFLINE, "TQDM_DISABLE": "1"}  # no progress bars: stderr holds only what went wrong
@@ -103,9 +103,8 @@ def test_a_job_waits_for_the_holder(tmp_path, monkeypatch):
     """What a `murm reproduce` job does where another job builds the artefact it needs."""
     folder = tmp_path / "dataset"
     process, _ = holder(folder, "release")
-    with pytest.raises(FolderInUse):
-        with exclusive(folder):
-            pass
+    with pytest.raises(FolderInUse), exclusive(folder):
+        pass
     notes = []
 
     def note(text: str, **_: object) -> None:

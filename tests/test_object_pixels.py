@@ -24,7 +24,8 @@ def test_the_object_mask_covers_the_object_in_the_frame_and_in_the_goal_image(ma
     now, goal = env.object_views(), env.object_views(at_goal=True)
     red = np.array(OBJECT_COLOURS["red"][:3]) * 255
     for camera in ("global", "active"):
-        for (image, mask), observed in ((now[camera], obs["pixels"][camera]), (goal[camera], obs["pixels"][goal_key(camera)])):
+        pairs = ((now[camera], obs["pixels"][camera]), (goal[camera], obs["pixels"][goal_key(camera)]))
+        for (image, mask), observed in pairs:
             np.testing.assert_array_equal(image, observed)  # the same pixels as the observation
             assert mask.sum() >= MIN_VISIBLE_PIXELS
             inside, outside = image[mask].astype(float), image[~mask].astype(float)

@@ -109,7 +109,8 @@ def test_actor_scoped_dropout_hides_views_from_the_policy_only(tiny_pipeline, da
         torch.manual_seed(0)
         policy = build_policy(make_config(encoders, **overrides), dataset, torch.device("cpu"))
         state = torch.randn(64, 2, 2 * policy.config.latent_dim)
-        transition = {"state": state, "next_state": state.roll(1, 0), "action": torch.rand(64, policy.config.action_dim),
+        transition = {"state": state, "next_state": state.roll(1, 0),
+                      "action": torch.rand(64, policy.config.action_dim),
                       "reward": torch.zeros(64), "done": torch.zeros(64),
                       "keep": camera_keep_mask(64, 2, 0.5, torch.Generator().manual_seed(1))}
         return dict(zip(LOGGED, policy.iql_loss(transition)[1].tolist(), strict=True))
@@ -128,7 +129,7 @@ def test_features_are_checked_against_the_encoders(tiny_pipeline):
     config.load_encoder_settings()
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))
     config.input_features = {image_key("global"): image, goal_image_key("global"): image}
-    with pytest.raises(ValueError, match="needs observation.images.adjacent"):
+    with pytest.raises(ValueError, match=r"needs observation\.images\.adjacent"):
         config.validate_features()
     big = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 48, 48))
     config.input_features = {k: big for c in ("global", "adjacent") for k in (image_key(c), goal_image_key(c))}
@@ -204,7 +205,8 @@ def test_masking_zeroes_whole_camera_pairs_at_rate_p_and_never_all(policy):
 
 
 def test_masking_blanks_a_single_camera_image(tiny_pipeline, dataset):
-    policy = build_policy(make_config(tiny_pipeline[1], method="single", cameras=["global"]), dataset, torch.device("cpu"))
+    config = make_config(tiny_pipeline[1], method="single", cameras=["global"])
+    policy = build_policy(config, dataset, torch.device("cpu"))
     batch = observation(policy, batch=2000)
     blank = policy.encode("global", torch.zeros(1, 3, 16, 16))[0]
     state = policy.state_from_observation(batch, mask_p=0.1)
@@ -268,7 +270,8 @@ def test_widths_follow_the_papers_128_units_per_camera(tiny_pipeline, dataset, m
     q_width = 128 if method == "separated_q" else per_camera
     assert widths() == (per_camera, per_camera, q_width)
     assert widths(width_per_camera=False) == (128, 128, 128)
-    assert widths(hidden_units=32) == (32 * len(cameras), 32 * len(cameras), 32 if method == "separated_q" else 32 * len(cameras))
+    q_width_32 = 32 if method == "separated_q" else 32 * len(cameras)
+    assert widths(hidden_units=32) == (32 * len(cameras), 32 * len(cameras), q_width_32)
 
 
 def test_separated_q_can_leave_a_dropped_cameras_q_out_of_the_mean(tiny_pipeline, dataset):

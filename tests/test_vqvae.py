@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from lerobot_murm.collection import CollectConfig, collect
-from lerobot_murm.expert import PAPER_NOISE_STD
 from lerobot_murm.collection.dataset import episode_successes
+from lerobot_murm.expert import PAPER_NOISE_STD
 from lerobot_murm.vqvae import VQVAE, VQVAEConfig
 from lerobot_murm.vqvae.frames import load_camera_frames, open_dataset
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
@@ -23,7 +23,8 @@ from lerobot_murm.vqvae.train import train_vqvae
 
 MURM = Path(sys.executable).parent / "murm"
 REPO = "local/murm_pick_up"
-TINY = VQVAEConfig(steps=15, batch_size=16, hidden_channels=16, residual_channels=8, codebook_size=32, holdout_fraction=0.34)
+TINY = VQVAEConfig(steps=15, batch_size=16, hidden_channels=16, residual_channels=8, codebook_size=32,
+                   holdout_fraction=0.34)
 
 
 @pytest.fixture(scope="module")
@@ -150,12 +151,14 @@ def test_distance_statistics_suggest_an_epsilon_between_the_two_distributions(da
 
 def test_the_cli_trains_and_encodes(dataset_root, tmp_path):
     out = tmp_path / "enc"
-    run = [str(MURM), "train-vqvae", "--dataset", str(dataset_root), "--camera", "top", "--steps", "5", "--out", str(out)]
+    run = [str(MURM), "train-vqvae", "--dataset", str(dataset_root), "--camera", "top", "--steps", "5",
+           "--out", str(out)]
     result = subprocess.run(run + ["--batch-size", "8"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "held-out PSNR" in result.stdout
     result = subprocess.run(
-        [str(MURM), "encode", "--dataset", str(dataset_root), "--encoders", str(out), "--cache-dir", str(tmp_path / "c")],
+        [str(MURM), "encode", "--dataset", str(dataset_root), "--encoders", str(out),
+         "--cache-dir", str(tmp_path / "c")],
         capture_output=True,
         text=True,
         timeout=300,

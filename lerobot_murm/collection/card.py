@@ -40,7 +40,8 @@ def render_card(summary: dict, repo_id: str) -> str:
     rate = summary["success_rate"]
     command = (
         f"murm collect --task {recipe['task']} --episodes {summary['episodes']} --seed {recipe['base_seed']} "
-        f"--noise-k {recipe['noise_k']} --noise-std {recipe['noise_std']} --noisy-fraction {recipe['noisy_fraction']} --cameras {','.join(cameras)}"
+        f"--noise-k {recipe['noise_k']} --noise-std {recipe['noise_std']} --noisy-fraction {recipe['noisy_fraction']} "
+        f"--cameras {','.join(cameras)}"
     )
     return card_template(DEMONSTRATIONS_TEMPLATE).substitute(
         task=recipe["task"],

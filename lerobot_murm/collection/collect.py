@@ -26,8 +26,8 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
-from contextlib import contextmanager
 from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -39,13 +39,13 @@ from tqdm import tqdm
 
 from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import dataset as murm_dataset
-from lerobot_murm.collection.durability import restore
 from lerobot_murm.collection.dataset import StagedEpisode
 from lerobot_murm.collection.donors import Donor, stage_from_donor
+from lerobot_murm.collection.durability import restore
 from lerobot_murm.collection.episodes import EpisodeRecipe, run_episode
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES, MurmEnv
-from lerobot_murm.env.murm_env import TASK_DESCRIPTIONS
 from lerobot_murm.env.cameras import validate_camera_names
+from lerobot_murm.env.murm_env import TASK_DESCRIPTIONS
 from lerobot_murm.expert import default_noise_std
 from lerobot_murm.locking import exclusive
 
@@ -139,7 +139,8 @@ def _collect(config: CollectConfig, donors: dict[bool, Donor]) -> dict:
     progress = tqdm(total=config.episodes, initial=done, desc=f"collect {config.task}", unit="ep")
     with _deferred_stop_signals() as stop_requested:
         try:
-            for written, episode in enumerate(_episodes(config, range(config.first_episode + done, config.first_episode + config.episodes), donors), start=1):
+            indices = range(config.first_episode + done, config.first_episode + config.episodes)
+            for written, episode in enumerate(_episodes(config, indices, donors), start=1):
                 murm_dataset.save_staged_episode(dataset, episode, description)  # never cut in half
                 successes.append(episode.succeeded)
                 progress.set_postfix(
@@ -226,7 +227,9 @@ def _remove_collection(root: Path) -> None:
     shutil.rmtree(root)
 
 
-def make_staged_episode(recipe: EpisodeRecipe, index: int, dataset_root: Path, donors: dict[bool, Donor]) -> StagedEpisode:
+def make_staged_episode(
+    recipe: EpisodeRecipe, index: int, dataset_root: Path, donors: dict[bool, Donor]
+) -> StagedEpisode:
     """A worker's job: one episode with its images as PNG files, copied from the donor of its
     noise flag where that holds it, else simulated and encoded."""
     donor = donors.get(recipe.episode_start(index)[1]) if donors else None

@@ -19,7 +19,6 @@ import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TypeVar
 
 import numpy as np
 from lerobot.datasets.image_writer import image_array_to_pil_image
@@ -35,7 +34,6 @@ SUMMARY_FILE = "meta/murm_collection.json"
 STAGING_DIR = "images/murm-staging"
 PNG_COMPRESS_LEVEL = 6  # what LeRobot's writer uses for `image` features
 IMAGE_NAMES = ["height", "width", "channels"]
-T = TypeVar("T")  # an image as `stage_camera` gets it: pixels to encode, or PNG bytes
 
 
 def dataset_features(cameras: tuple[str, ...], image_size: int) -> dict:
@@ -95,9 +93,12 @@ def staging_folder(dataset_root: Path, index: int) -> Path:
     return staging_root(dataset_root) / f"episode-{index:06d}"
 
 
-def stage_camera(folder: Path, camera: str, frames: Sequence[T], goal: T, write: Callable[[T, Path], None]) -> dict[str, list[str]]:
+def stage_camera[T](
+    folder: Path, camera: str, frames: Sequence[T], goal: T, write: Callable[[T, Path], None]
+) -> dict[str, list[str]]:
     """Write one camera's frames and goal image into the staging folder with `write(image, path)`;
-    the paths by feature key, the goal's repeated for every frame as the writer wants it."""
+    the paths by feature key, the goal's repeated for every frame as the writer wants it. `T` is an
+    image as it comes: pixels to encode, or PNG bytes."""
     paths = [folder / camera / f"frame-{t:06d}.png" for t in range(len(frames))]
     paths[0].parent.mkdir(parents=True, exist_ok=True)
     for frame, path in zip(frames, paths, strict=True):
@@ -168,7 +169,7 @@ def write_summary(root: Path, recipe: EpisodeRecipe, successes: np.ndarray, requ
     snapshot `durability.restore` repairs a hard stop from (see durability.py)."""
     summary = {
         "recipe": asdict(recipe),
-        "episodes": int(len(successes)),
+        "episodes": len(successes),
         "requested_episodes": requested,
         "success_rate": float(successes.mean()) if len(successes) else None,
         "episode_success": [bool(s) for s in successes],

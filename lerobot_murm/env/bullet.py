@@ -61,9 +61,9 @@ class QuietBulletClient(BulletClient):
     """A `BulletClient` that also disconnects silently when an env left open is collected at exit."""
 
     def __del__(self) -> None:
-        try:
+        try:  # noqa: SIM105  (not contextlib.suppress: at interpreter exit module globals may be None already)
             super().__del__()
-        except Exception:  # noqa: BLE001  at interpreter exit pybullet's module globals may be None already
+        except Exception:  # at interpreter exit pybullet's module globals may be None already
             pass
 
 

@@ -10,7 +10,7 @@ recorded in the dataset, never by the learned policy).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -48,7 +48,7 @@ TASK_DESCRIPTIONS = {
 class MurmEnv(gym.Env):
     """Franka Panda, 4-DoF end-effector control, one of three MURM tasks, five cameras."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FPS}
 
     def __init__(
         self,
@@ -76,7 +76,7 @@ class MurmEnv(gym.Env):
         self.lowpoly_robot = lowpoly_robot
 
         image_space = spaces.Box(0, 255, (self.image_size, self.image_size, 3), np.uint8)
-        pixel_spaces = {name: image_space for name in self.cameras}
+        pixel_spaces = dict.fromkeys(self.cameras, image_space)
         if goal_images:
             pixel_spaces |= {goal_key(name): image_space for name in self.cameras}
         self.observation_space = spaces.Dict(
@@ -194,7 +194,8 @@ class MurmEnv(gym.Env):
             raise RuntimeError("call reset() before object_views()")
 
         def render(ee_position: np.ndarray) -> dict:
-            return {name: self._rig.render_with_mask(name, ee_position, self._task.object_body) for name in self.cameras}
+            body = self._task.object_body
+            return {name: self._rig.render_with_mask(name, ee_position, body) for name in self.cameras}
 
         return self._at_goal(render) if at_goal else render(self._robot.ee_position())
 

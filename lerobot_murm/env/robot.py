@@ -28,7 +28,7 @@ GRIPPER_DOWN = pybullet.getQuaternionFromEuler([np.pi, 0.0, 0.0])
 STOCK_URDF = Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf"
 
 LINK_COLOURS = {
-    **{link: (0.92, 0.92, 0.92, 1.0) for link in range(-1, 7)},
+    **dict.fromkeys(range(-1, 7), (0.92, 0.92, 0.92, 1.0)),
     7: (0.25, 0.25, 0.25, 1.0),
     8: (0.92, 0.92, 0.92, 1.0),
     9: (0.25, 0.25, 0.25, 1.0),

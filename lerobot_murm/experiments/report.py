@@ -8,11 +8,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib.figure import Figure
 
 from lerobot_murm.experiments.claims import claims_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
@@ -78,9 +75,10 @@ def plot_against_paper(name: str, rows: list[dict], tasks: tuple[str, ...], path
     drawn = [t for i, t in enumerate(tasks) if any(values[i][0] for values in per_task.values())]
     if name not in PAPER_TABLES or not drawn:
         return False
-    labels = [f"{cell}, masking {mask_p:.0%}" if mask_p and "authors'" not in cell else cell for cell, mask_p in per_task]
-    fig, axes = plt.subplots(1, len(drawn), figsize=(4.2 * len(drawn) + 3.5, 0.45 * len(labels) + 1.4),
-                             squeeze=False, sharey=True)
+    labels = [f"{cell}, masking {mask_p:.0%}" if mask_p and "authors'" not in cell else cell
+              for cell, mask_p in per_task]
+    fig = Figure(figsize=(4.2 * len(drawn) + 3.5, 0.45 * len(labels) + 1.4))
+    axes = fig.subplots(1, len(drawn), squeeze=False, sharey=True)
     y = np.arange(len(labels))
     for ax, task in zip(axes[0], drawn, strict=True):
         column = [values[tasks.index(task)] for values in per_task.values()]
@@ -100,7 +98,6 @@ def plot_against_paper(name: str, rows: list[dict], tasks: tuple[str, ...], path
     fig.legend(handles, legend, loc="lower center", ncol=2, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 1.0 / (len(labels) + 3), 1, 1))
     fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
     return True
 
 
@@ -121,7 +118,8 @@ def time_table(runs: list[dict], paper: dict[str, float], base_cell: str | None 
     for r in runs:
         cells.setdefault((r["task"], r["cell"]), []).append(r)
     against = base_cell or "first cell"
-    lines = [f"| task | cell | training steps/s | time per update vs. {against} (same machine) | runs | machines | paper |",
+    lines = [f"| task | cell | training steps/s | time per update vs. {against} (same machine) | runs | machines "
+             "| paper |",
              "|---|---|---:|---:|---:|---:|---:|"]
     for (task, cell), members in cells.items():
         ratios = [float(np.mean(base[(task, r["hardware"])])) / float(r["train_steps_per_s"])
@@ -171,7 +169,8 @@ def training_spread(results: Path, paper: dict[str, float]) -> str:
         if mask_p != 0.0:
             continue
         steps = sorted(set.intersection(*(set(s) for s in seeds)))
-        spread = f"{np.mean([np.std([s[step] for s in seeds], ddof=1) for step in steps]):.2f}" if len(seeds) > 1 else "-"
+        spread = (f"{np.mean([np.std([s[step] for s in seeds], ddof=1) for step in steps]):.2f}"
+                  if len(seeds) > 1 else "-")
         value = paper.get(cell)
         lines.append(f"| {task} | {cell} | {spread} | {len(seeds)} | {'' if value is None else f'{value:.2f}'} |")
     return "\n".join(lines) + "\n"
@@ -190,7 +189,8 @@ def precision_text(run: dict) -> str:
 def encoders_text(run: dict) -> str:
     """The fingerprints of the encoders a run trained on ('-': a run from before they were
     recorded), so that a reader sees which draw of the encoders each run had."""
-    return ", ".join(f"{camera} {fingerprint[:8]}" for camera, fingerprint in (run.get("encoders") or {}).items()) or "-"
+    encoders = run.get("encoders") or {}
+    return ", ".join(f"{camera} {fingerprint[:8]}" for camera, fingerprint in encoders.items()) or "-"
 
 
 def run_list(results: Path, split: str = "test") -> str:
@@ -205,7 +205,8 @@ def run_list(results: Path, split: str = "test") -> str:
         finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in final_evaluations(r, split))
         wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
         lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
-                     f"{wall} | {r['train_steps_per_s']} | {r['hardware']} | {precision_text(r)} | {encoders_text(r)} |")
+                     f"{wall} | {r['train_steps_per_s']} | {r['hardware']} | {precision_text(r)} | "
+                     f"{encoders_text(r)} |")
     return "\n".join(lines) + f"\n\nMachine time of the runs this grid trained ({trained}): {seconds / 3600:.1f} h.\n"
 
 
@@ -235,8 +236,8 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
         against_paper = plot_against_paper(results.name, rows, grid_tasks(results), results / "vs_paper.png")
         sections.append(
             f"## {results.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds "
-            f"(n = seeds finished; a single seed has none), {rows[0]['episodes_per_seed']} {split} episodes per seed and masking "
-            f"level{beside}. "
+            f"(n = seeds finished; a single seed has none), {rows[0]['episodes_per_seed']} {split} episodes per seed "
+            f"and masking level{beside}. "
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
             + comparison(results.name, rows, grid_tasks(results))
             + (f"\n![ours beside the paper]({where / 'vs_paper.png'})\n" if against_paper else "")
@@ -271,7 +272,8 @@ def compact_table(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")
     count = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]} to {seeds[-1]}"
     plural = "s" if seeds[-1] > 1 else ""
-    note = f"Each value averages {count} training seed{plural} (sample std over them, ddof 1; test episodes); the paper's value in brackets."
+    note = (f"Each value averages {count} training seed{plural} (sample std over them, ddof 1; test episodes); "
+            "the paper's value in brackets.")
     return "\n".join(lines) + f"\n\n{note}\n"
 
 

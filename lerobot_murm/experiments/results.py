@@ -12,11 +12,9 @@ import json
 from collections import defaultdict
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.figure import Figure
 
 COLUMNS = ["task", "cell", "method", "cameras", "mask_p", "success_mean", "success_std", "seeds",
            "episodes_per_seed", "steps", "wall_s_mean", "train_steps_per_s"]
@@ -82,7 +80,8 @@ def read_table(path: Path) -> list[dict]:
         missing = [c for c in COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
             raise ValueError(f"{path} is not a grid table ({len(missing)} of its {len(COLUMNS)} columns missing, "
-                             f"'{missing[0]}' first); delete it and run `murm report` again to rebuild it from its runs")
+                             f"'{missing[0]}' first); delete it and run `murm report` again to rebuild it from its "
+                             "runs")
         return list(reader)
 
 
@@ -121,7 +120,8 @@ def plot_curves(results: list[dict], path: Path) -> None:
     tasks = list(dict.fromkeys(r["task"] for r in results))
     cells = list(dict.fromkeys(r["cell"] for r in results))
     curves = seed_curves(results)
-    fig, axes = plt.subplots(1, len(tasks), figsize=(5 * len(tasks) + 2, 4.8), squeeze=False)
+    fig = Figure(figsize=(5 * len(tasks) + 2, 4.8))
+    axes = fig.subplots(1, len(tasks), squeeze=False)
     for ax, task in zip(axes[0], tasks, strict=True):
         for (curve_task, cell, mask_p), seeds in curves.items():  # colour: cell; line style: masking
             if curve_task != task:
@@ -129,7 +129,7 @@ def plot_curves(results: list[dict], path: Path) -> None:
             steps = sorted(set.intersection(*(set(s) for s in seeds)))
             values = np.array([[s[step] for step in steps] for s in seeds])
             label = f"{cell}" + (f", masking {mask_p:.0%}" if mask_p else "")
-            color = plt.get_cmap("tab10")(cells.index(cell) % 10)
+            color = colormaps["tab10"](cells.index(cell) % 10)
             style = "-" if mask_p == 0 else (":" if mask_p < 0.3 else "--")
             ax.plot(steps, values.mean(0), style, color=color, marker="o", markersize=3, label=label)
             ax.fill_between(steps, values.min(0), values.max(0), color=color, alpha=0.15)
@@ -139,7 +139,6 @@ def plot_curves(results: list[dict], path: Path) -> None:
     fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=7, frameon=False)
     fig.tight_layout(rect=(0, 0.06 + 0.035 * -(-len(labels) // ncol), 1, 1))
     fig.savefig(path, dpi=110, bbox_inches="tight")  # never crop a long legend label
-    plt.close(fig)
 
 
 def write_tables(config, results: list[dict], out: Path) -> list[dict]:

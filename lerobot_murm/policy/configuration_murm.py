@@ -252,7 +252,9 @@ class MurmConfig(PreTrainedConfig):
                 length = packed_length(encoder.grid_size**2, encoder.codebook_size)
                 for key in (latent_key(camera), latent_goal_key(camera)):
                     if key not in self.input_features:
-                        raise ValueError(f"the policy needs {key}; the latent dataset has no codes of camera {camera!r}")
+                        raise ValueError(
+                            f"the policy needs {key}; the latent dataset has no codes of camera {camera!r}"
+                        )
                     if tuple(self.input_features[key].shape) != (length,):
                         raise ValueError(f"{key} has shape {tuple(self.input_features[key].shape)}; the {camera} "
                                          f"encoder's {encoder.grid_size}x{encoder.grid_size} grid of codes packs "

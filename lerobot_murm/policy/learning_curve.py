@@ -5,10 +5,7 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.figure import Figure
 
 
 def read_run_csv(path: Path) -> list[dict[str, float | str]]:
@@ -16,20 +13,23 @@ def read_run_csv(path: Path) -> list[dict[str, float | str]]:
     if not path.exists():
         return []
     with path.open() as f:
-        return [{k: v if k in ("split", "mask_mode") else float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        return [{k: v if k in ("split", "mask_mode") else float(v) for k, v in row.items()}
+                for row in csv.DictReader(f)]
 
 
 def validation_curve(eval_rows: list[dict]) -> list[dict]:
     """The learning curve: validation evaluations under the paper's masking (the test rows
     are for reporting only and are never plotted against training)."""
-    return [r for r in eval_rows if r.get("split", "validation") == "validation" and r.get("mask_mode", "paper") == "paper"]
+    return [r for r in eval_rows
+            if r.get("split", "validation") == "validation" and r.get("mask_mode", "paper") == "paper"]
 
 
 def plot_learning_curve(run_dir: Path) -> Path:
     """Success rate per masking level over training steps, beside the three IQL losses."""
     run_dir = Path(run_dir)
     evals, logs = validation_curve(read_run_csv(run_dir / "eval.csv")), read_run_csv(run_dir / "log.csv")
-    fig, (ax_success, ax_loss) = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig = Figure(figsize=(10, 3.6))
+    ax_success, ax_loss = fig.subplots(1, 2)
     for mask_p in sorted({row["mask_p"] for row in evals}):
         rows = [r for r in evals if r["mask_p"] == mask_p]
         ax_success.plot([r["step"] for r in rows], [100 * r["success_rate"] for r in rows], marker="o",
@@ -46,5 +46,4 @@ def plot_learning_curve(run_dir: Path) -> Path:
     fig.tight_layout()
     path = run_dir / "learning_curve.png"
     fig.savefig(path, dpi=100)
-    plt.close(fig)
     return path

@@ -23,7 +23,6 @@ from torch import Tensor, nn
 
 from lerobot_murm.features import goal_image_key, image_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.process_group import keep_process_group_until_exit
 from lerobot_murm.policy.iql import (
     DoubleQ,
     GaussianPolicy,
@@ -34,6 +33,7 @@ from lerobot_murm.policy.iql import (
     polyak_update,
 )
 from lerobot_murm.policy.precision import compute_dtype, matmul_precision, resolve_precision
+from lerobot_murm.policy.process_group import keep_process_group_until_exit
 from lerobot_murm.policy.replay import ACTION, DONE, KEEP, NEXT_STATE, REWARD, STATE, LatentReplay, replay_for_dataset
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
@@ -109,7 +109,9 @@ class MurmPolicy(PreTrainedPolicy):
         for camera in self.cameras:
             trained = VQVAE.load(f"{self.config.encoder_dir}/{camera}")
             if trained.config.latent_dim != self.encoders[camera].config.latent_dim:
-                raise ValueError(f"the {camera} encoder in {self.config.encoder_dir} changed since this config was made")
+                raise ValueError(
+                    f"the {camera} encoder in {self.config.encoder_dir} changed since this config was made"
+                )
             self.encoders[camera].load_state_dict(trained.state_dict())
 
     def train(self, mode: bool = True) -> MurmPolicy:
@@ -204,7 +206,9 @@ class MurmPolicy(PreTrainedPolicy):
         """The replay's transitions from dataset rows `rows` (LeRobot's sampler never picks an
         episode's last frame: `MurmConfig.drop_n_last_frames`), on the rows' device."""
         if self.replay is None:
-            raise RuntimeError("this policy holds no training data: make it with the dataset's metadata (lerobot-train)")
+            raise RuntimeError(
+                "this policy holds no training data: make it with the dataset's metadata (lerobot-train)"
+            )
         return {k: v.to(rows.device) for k, v in self.replay.transitions(rows).transition().items()}
 
     def iql_loss(self, transition: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -214,7 +218,8 @@ class MurmPolicy(PreTrainedPolicy):
         then every loss and logged value has it too (one per seed)."""
         c = self.config
         dtype = compute_dtype(transition[STATE].device)  # the networks' inputs, cast once for all of them
-        state, next_state = self.normalize(transition[STATE]).to(dtype), self.normalize(transition[NEXT_STATE]).to(dtype)
+        state = self.normalize(transition[STATE]).to(dtype)
+        next_state = self.normalize(transition[NEXT_STATE]).to(dtype)
         action = transition[ACTION]
         actor_state, q_heads = state, None
         critic_input = state if c.method == "separated_q" else state.flatten(-2).unsqueeze(-2)

@@ -17,5 +17,7 @@ from lerobot_murm.policy.configuration_murm import MurmConfig
 
 def make_murm_pre_post_processors(
     config: MurmConfig, dataset_stats: dict[str, dict[str, torch.Tensor]] | None = None
-) -> tuple[PolicyProcessorPipeline[dict[str, Any], dict[str, Any]], PolicyProcessorPipeline[PolicyAction, PolicyAction]]:
+) -> tuple[
+    PolicyProcessorPipeline[dict[str, Any], dict[str, Any]], PolicyProcessorPipeline[PolicyAction, PolicyAction]
+]:
     return make_default_pre_post_processors(config, dataset_stats)

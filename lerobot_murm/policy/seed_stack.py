@@ -60,8 +60,10 @@ class SeedStack:
         self._precision = resolve_precision(base.config.precision, self.device)
         self._transposed = {f"{n}.weight" for n, m in base.named_modules() if isinstance(m, nn.Linear)}
         with torch.no_grad():
-            self.tensors = {n: torch.stack([self._stacked_layout(n, o[n]) for o in own]).requires_grad_(own[0][n].requires_grad)
-                            for n in stacked}
+            self.tensors = {
+                n: torch.stack([self._stacked_layout(n, o[n]) for o in own]).requires_grad_(own[0][n].requires_grad)
+                for n in stacked
+            }
         name_of = {id(t): n for n, t in base.named_parameters()}
         groups = [g | {"params": [self.tensors[name_of[id(t)]] for t in g["params"]]} for g in base.get_optim_params()]
         self._optimized = [name_of[id(t)] for g in base.get_optim_params() for t in g["params"]]

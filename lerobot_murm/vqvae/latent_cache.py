@@ -19,7 +19,7 @@ import torch
 from tqdm import tqdm
 
 from lerobot_murm.vqvae.frames import dataset_fingerprint, decode_pngs, open_dataset, read_camera_pngs
-from lerobot_murm.vqvae.modeling_vqvae import WEIGHTS_FILE, VQVAE
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE, WEIGHTS_FILE
 
 ENCODE_BATCH = 1024
 
@@ -104,6 +104,7 @@ def build_latent_cache(
         return cache
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, **{k: getattr(cache, k) for k in ("indices", "goal_indices", "codebook", "episode_index", "frame_index")})
+    fields = ("indices", "goal_indices", "codebook", "episode_index", "frame_index")
+    np.savez(tmp, **{k: getattr(cache, k) for k in fields})
     tmp.replace(path)  # atomic: an interrupted build leaves no half cache
     return cache

@@ -8,8 +8,9 @@ goal image (grid x grid row-major), packed several to an int64 (`code_packing`),
 image streams. Indices rather than the 720 floats they stand for: a latent is a lookup in
 the encoder's codebook (bit-identical to encoding the image), and the files are 10x
 smaller; packed, because LeRobot's data loader turns every number of a row into Python
-objects one row at a time, and fewer numbers read faster (BENCHMARKS.md). The codebooks, the encoders' fingerprints and the source dataset are in
-`meta/murm_latents.json`; a policy refuses codes made by other encoders than its own.
+objects one row at a time, and fewer numbers read faster (BENCHMARKS.md). The codebooks, the
+encoders' fingerprints and the source dataset are in `meta/murm_latents.json`; a policy
+refuses codes made by other encoders than its own.
 
 It is written with LeRobot's own `dataset_tools.modify_features` (one pass: add the code
 columns, drop the images) from the latent caches `murm encode` builds anyway.
@@ -84,7 +85,9 @@ def read_latent_caches(dataset: LeRobotDataset, cameras: list[str],
     description = json.loads((Path(dataset.root) / LATENTS_FILE).read_text())["cameras"]
     missing = [c for c in cameras if c not in description]
     if missing:
-        raise ValueError(f"the latent dataset at {dataset.root} has no codes of {missing}; it has {sorted(description)}")
+        raise ValueError(
+            f"the latent dataset at {dataset.root} has no codes of {missing}; it has {sorted(description)}"
+        )
     table = dataset.hf_dataset.with_format("arrow")
     columns = [k for c in cameras for k in (latent_key(c), latent_goal_key(c))]
     table = table.select_columns([*columns, "episode_index", "frame_index", "index"])[:]

@@ -18,15 +18,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from lerobot_murm.checkpointing import write_atomic  # noqa: E402
-from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE  # noqa: E402
-from lerobot_murm.vqvae.latent_cache import LatentCache  # noqa: E402
+from lerobot_murm.checkpointing import write_atomic
+from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE
+from lerobot_murm.vqvae.latent_cache import LatentCache
 
 PERCENTILES = (5, 25, 50, 75, 95)
 QUANTILE_KEY = "random_frames_quantiles"  # percentiles 0, 1, ..., 100 of the random frames' distances
@@ -44,7 +41,8 @@ def goal_distances(cache: LatentCache, rows: np.ndarray) -> np.ndarray:
 def distance_statistics(cache: LatentCache, episode_success: np.ndarray, samples: int = 5000, seed: int = 0) -> dict:
     last_rows = np.flatnonzero(np.append(cache.episode_index[1:] != cache.episode_index[:-1], True))
     successful_last = last_rows[episode_success[cache.episode_index[last_rows]]]
-    random_rows = np.random.default_rng(seed).choice(len(cache.indices), size=min(samples, len(cache.indices)), replace=False)
+    rows = len(cache.indices)
+    random_rows = np.random.default_rng(seed).choice(rows, size=min(samples, rows), replace=False)
     reached = goal_distances(cache, successful_last)
     random = goal_distances(cache, random_rows)
     candidates = np.unique(np.concatenate([reached, random]))
@@ -106,7 +104,9 @@ def quantile_of_epsilon(epsilon: float, stats: dict) -> float:
 
 def _quantiles(stats: dict) -> list[float]:
     if QUANTILE_KEY not in stats:
-        raise ValueError(f"these distance statistics ({stats.get('camera')}) predate {QUANTILE_KEY}; run `murm encode` again")
+        raise ValueError(
+            f"these distance statistics ({stats.get('camera')}) predate {QUANTILE_KEY}; run `murm encode` again"
+        )
     return stats[QUANTILE_KEY]
 
 
@@ -132,13 +132,14 @@ def save_beside_encoder(stats: dict, encoder_dir: Path) -> None:
 def _summary(values: np.ndarray) -> dict:
     if not len(values):
         return {"count": 0}
-    return {"count": int(len(values)), "mean": float(values.mean())} | {
+    return {"count": len(values), "mean": float(values.mean())} | {
         f"p{p}": float(np.percentile(values, p)) for p in PERCENTILES
     }
 
 
 def plot_distances(stats: list[dict], path: Path) -> None:
-    fig, axes = plt.subplots(1, len(stats), figsize=(3.6 * len(stats), 3.0), squeeze=False)
+    fig = Figure(figsize=(3.6 * len(stats), 3.0))
+    axes = fig.subplots(1, len(stats), squeeze=False)
     for ax, s in zip(axes[0], stats, strict=True):
         bins = np.linspace(0, np.percentile(np.concatenate([s["_reached"], s["_random"]]), 99), 40)
         ax.hist(s["_random"], bins=bins, alpha=0.6, density=True, label="random frames")
@@ -149,4 +150,3 @@ def plot_distances(stats: list[dict], path: Path) -> None:
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)

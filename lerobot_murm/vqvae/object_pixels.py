@@ -72,7 +72,9 @@ def resimulate_object_frames(root: Path, episodes: list[int], cameras: list[str]
         run_episode(recipe, int(episode), observe)
         episode_index += [int(episode)] * (len(views[cameras[0]]) - len(episode_index))
     return {
-        c: ObjectFrames(c, np.stack([v[0] for v in views[c]]), np.stack([v[1] for v in views[c]]), np.array(episode_index))
+        c: ObjectFrames(
+            c, np.stack([v[0] for v in views[c]]), np.stack([v[1] for v in views[c]]), np.array(episode_index)
+        )
         for c in cameras
     }
 
@@ -110,7 +112,7 @@ def object_metrics(errors: np.ndarray, masks: np.ndarray) -> dict:
         return {"mse": mse, "psnr_db": float(10 * np.log10(1 / mse)) if selected.any() else float("nan")}
 
     return {
-        "images": int(len(errors)),
+        "images": len(errors),
         "object_visible_fraction": float((counts >= MIN_VISIBLE_PIXELS).mean()),
         "object_pixels_mean": float(counts.mean()),
         "whole_image": summary(np.ones_like(masks)),

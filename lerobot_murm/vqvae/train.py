@@ -12,20 +12,17 @@ import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import torch
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
-
-from lerobot_murm.checkpointing import CheckpointError, load_state, save_state, write_atomic  # noqa: E402
-from lerobot_murm.device import resolve_device  # noqa: E402
-from lerobot_murm.locking import exclusive  # noqa: E402
-from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop  # noqa: E402
-from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig  # noqa: E402
-from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset  # noqa: E402
-from lerobot_murm.vqvae.modeling_vqvae import VQVAE  # noqa: E402
+from lerobot_murm.checkpointing import CheckpointError, load_state, save_state, write_atomic
+from lerobot_murm.device import resolve_device
+from lerobot_murm.locking import exclusive
+from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop
+from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
+from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 LOG_EVERY = 50
 CHECKPOINT_EVERY = 250  # steps between resume states (about 30 s of training on 2 cores)
@@ -35,7 +32,7 @@ STATE_FILE = "training_state.pt"
 def heldout_episodes(episode_index: np.ndarray, fraction: float, seed: int) -> np.ndarray:
     """The whole episodes kept out of an encoder's training (none if there is only one)."""
     episodes = np.unique(episode_index)
-    n_held = max(1, int(round(fraction * len(episodes)))) if len(episodes) > 1 else 0
+    n_held = max(1, round(fraction * len(episodes))) if len(episodes) > 1 else 0
     return np.random.default_rng(seed).choice(episodes, size=n_held, replace=False)
 
 
@@ -89,7 +86,8 @@ def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: in
         model.eval()
         recon = model.postprocess(model(torch.from_numpy(picks))["reconstruction"]).permute(0, 2, 3, 1).numpy()
         model.train()
-    fig, axes = plt.subplots(2, count, figsize=(1.2 * count, 2.7))
+    fig = Figure(figsize=(1.2 * count, 2.7))
+    axes = fig.subplots(2, count)
     for i in range(count):
         for row, image in ((0, picks[i]), (1, recon[i])):
             axes[row, i].imshow(image, interpolation="nearest")
@@ -101,7 +99,6 @@ def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: in
     fig.suptitle(f"{model.config.camera} camera, {title}", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _save_state(path: Path, model: VQVAE, optimizer, schedule, rng: np.random.Generator, step: int,

@@ -43,7 +43,9 @@ def run(args: list, *, timeout: float, cwd: Path | None = None, env: dict | None
         out, err = output()
     name = Path(str(args[0])).name
     if isinstance(interruption, subprocess.TimeoutExpired):
-        pytest.fail(f"{name} still ran after {timeout} s; killed with everything it started:\n{out[-3000:]}\n{err[-5000:]}")
+        pytest.fail(
+            f"{name} still ran after {timeout} s; killed with everything it started:\n{out[-3000:]}\n{err[-5000:]}"
+        )
     if isinstance(interruption, pytest.fail.Exception):
         pytest.fail(f"{interruption}\noutput of {name} so far:\n{out[-3000:]}\n{err[-5000:]}")
     if interruption is not None:

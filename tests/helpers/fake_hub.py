@@ -23,7 +23,6 @@ import httpx
 from huggingface_hub import close_session, set_client_factory
 from huggingface_hub.utils._http import default_client_factory
 
-
 PUBLIC_URL = "https://huggingface.co"  # what the real Hub puts in the URLs it returns
 
 
@@ -83,7 +82,8 @@ class FakeHub:
                     self.wfile.write(body)
 
             def _json(self, status: int, payload, headers: dict | None = None):
-                self._send(status, json.dumps(payload).encode(), {"Content-Type": "application/json", **(headers or {})})
+                headers = {"Content-Type": "application/json", **(headers or {})}
+                self._send(status, json.dumps(payload).encode(), headers)
 
             def _not_found(self, code: str = "EntryNotFound", message: str = "not found", head: bool = False):
                 body = json.dumps({"error": message}).encode()
@@ -95,7 +95,7 @@ class FakeHub:
             def _route(self, method: str) -> None:
                 path = unquote(urlparse(self.path).path)
                 hub.requests.append(f"{method} {path}")
-                for pattern, handler in ROUTES:
+                for pattern, handler in routes:
                     match = re.fullmatch(pattern, f"{method} {path}")
                     if match:
                         return handler(self, *match.groups())
@@ -120,15 +120,18 @@ class FakeHub:
 
             def create_repo(self):
                 payload = json.loads(self._body())
-                repo_id = f"{payload['organization']}/{payload['name']}" if payload.get("organization") else payload["name"]
+                organization = payload.get("organization")
+                repo_id = f"{organization}/{payload['name']}" if organization else payload["name"]
                 if repo_id in hub.repos:
-                    return self._json(409, {"error": "You already created this dataset repo", "url": f"{PUBLIC_URL}/datasets/{repo_id}"})
+                    error = "You already created this dataset repo"
+                    return self._json(409, {"error": error, "url": f"{PUBLIC_URL}/datasets/{repo_id}"})
                 hub.repos[repo_id] = {"main": {}, "tags": {}, "commits": {}}
                 self._json(200, {"url": f"{PUBLIC_URL}/datasets/{repo_id}"})
 
             def preupload(self, repo_id, revision):
                 files = json.loads(self._body())["files"]
-                modes = [{"path": f["path"], "uploadMode": "regular", "shouldIgnore": False, "oid": None} for f in files]
+                modes = [{"path": f["path"], "uploadMode": "regular", "shouldIgnore": False, "oid": None}
+                         for f in files]
                 self._json(200, {"files": modes, "commitOid": _sha(hub.repos[repo_id]["main"])})
 
             def commit(self, repo_id, revision):
@@ -141,7 +144,8 @@ class FakeHub:
                         files.pop(item["value"]["path"], None)
                 oid = _sha(files)
                 hub.repos[repo_id]["commits"][oid] = dict(files)
-                self._json(200, {"commitUrl": f"{PUBLIC_URL}/datasets/{repo_id}/commit/{oid}", "commitOid": oid, "pullRequestUrl": None})
+                url = f"{PUBLIC_URL}/datasets/{repo_id}/commit/{oid}"
+                self._json(200, {"commitUrl": url, "commitOid": oid, "pullRequestUrl": None})
 
             def create_tag(self, repo_id, revision):
                 tag = json.loads(self._body())["tag"]
@@ -159,7 +163,8 @@ class FakeHub:
                 repo = hub.repos[repo_id]
                 self._json(200, {
                     "branches": [{"name": "main", "ref": "refs/heads/main", "targetCommit": _sha(repo["main"])}],
-                    "tags": [{"name": t, "ref": f"refs/tags/{t}", "targetCommit": _sha(f)} for t, f in repo["tags"].items()],
+                    "tags": [{"name": t, "ref": f"refs/tags/{t}", "targetCommit": _sha(f)}
+                             for t, f in repo["tags"].items()],
                     "converts": [],
                 })
 
@@ -191,7 +196,7 @@ class FakeHub:
                            "Content-Type": "application/octet-stream"}
                 self._send(200, data, headers, head=head)
 
-        ROUTES = [
+        routes = [
             (r"POST /api/repos/create", Handler.create_repo),
             (r"POST /api/validate-yaml", Handler.validate_yaml),
             (r"POST /api/datasets/([^/]+/[^/]+)/preupload/([^/]+)", Handler.preupload),

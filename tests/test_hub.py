@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from lerobot_murm.collection import CollectConfig, collect
-from lerobot_murm.collection.hub import pull_dataset, push_dataset
 from lerobot_murm.expert import PAPER_NOISE_STD
+from lerobot_murm.publishing import pull_dataset, push_dataset
 
 MURM = Path(sys.executable).parent / "murm"
 

@@ -15,10 +15,10 @@ from lerobot.datasets.sampler import EpisodeAwareSampler
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from scipy import stats
 
-from lerobot_murm.collection.hub import pull_dataset, push_dataset
 from lerobot_murm.features import latent_goal_key, latent_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.replay import replay_for_dataset
+from lerobot_murm.publishing import pull_dataset, push_dataset
 from lerobot_murm.vqvae.code_packing import unpack_codes
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_dataset import read_latent_caches

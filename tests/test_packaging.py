@@ -25,7 +25,7 @@ from lerobot_murm.policy.train import build_policy
 REPO = Path(__file__).parents[1]
 HELPERS = Path(__file__).parent / "helpers"
 SOURCES = ("pyproject.toml", "README.md", "lerobot_murm", "lerobot_policy_murm", "datasets_cards")
-CARD_TEMPLATE = "lerobot_murm/datasets_cards/murm_demonstrations.md"
+CARD_TEMPLATE = "lerobot_murm/publishing/datasets_cards/murm_demonstrations.md"
 
 sys.path.insert(0, str(HELPERS))
 from commands import run_command  # noqa: E402
@@ -64,7 +64,7 @@ def installed(tmp_path_factory) -> tuple[Path, dict]:
 def test_the_wheel_brings_its_own_code_and_card_template(installed, tmp_path):
     venv, env = installed
     script = ("import lerobot_murm, lerobot_policy_murm; from importlib.resources import files; "
-              "print(lerobot_murm.__file__); print((files('lerobot_murm') / 'datasets_cards').is_dir())")
+              "print(lerobot_murm.__file__); print((files('lerobot_murm.publishing') / 'datasets_cards').is_dir())")
     module, has_cards = run_command([venv / "bin" / "python", "-c", script], tmp_path, env).split()
     assert Path(module).is_relative_to(venv) and has_cards == "True"
 

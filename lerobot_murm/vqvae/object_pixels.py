@@ -23,8 +23,7 @@ import torch
 from tqdm import tqdm
 
 from lerobot_murm.checkpointing import write_atomic
-from lerobot_murm.collection.dataset import read_recipe
-from lerobot_murm.collection.episodes import run_episode
+from lerobot_murm.collection import read_recipe, run_episode
 from lerobot_murm.device import resolve_device
 from lerobot_murm.vqvae.frames import decode_pngs, open_dataset, read_camera_pngs
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE

@@ -27,7 +27,7 @@ SUCCESS_RULES = {
 
 def card_template(name: str) -> Template:
     """The template `datasets_cards/<name>`, read from the installed package (it ships as package data)."""
-    return Template((files("lerobot_murm") / "datasets_cards" / name).read_text(encoding="utf-8"))
+    return Template((files("lerobot_murm.publishing") / "datasets_cards" / name).read_text(encoding="utf-8"))
 
 
 def render_card(summary: dict, repo_id: str) -> str:

@@ -15,8 +15,8 @@ from huggingface_hub import constants
 from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from lerobot_murm.collection.card import render_card, render_latent_card
 from lerobot_murm.collection.dataset import SUMMARY_FILE
+from lerobot_murm.publishing.card import render_card, render_latent_card
 from lerobot_murm.vqvae.latent_dataset import LATENTS_FILE
 
 HUB_ERRORS = (httpx.HTTPError, HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled, OSError)

@@ -88,7 +88,7 @@ def staging_root(dataset_root: Path) -> Path:
     return Path(dataset_root) / STAGING_DIR
 
 
-def staging_folder(dataset_root: Path, index: int) -> Path:
+def episode_staging_folder(dataset_root: Path, index: int) -> Path:
     """Where episode `index` is staged before the writer takes it."""
     return staging_root(dataset_root) / f"episode-{index:06d}"
 
@@ -115,7 +115,7 @@ def _encode_png(image: np.ndarray, path: Path) -> None:
 
 
 def stage_episode(episode: Episode, dataset_root: Path) -> StagedEpisode:
-    folder = staging_folder(dataset_root, episode.index)
+    folder = episode_staging_folder(dataset_root, episode.index)
     images: dict[str, list[str]] = {}
     for camera, frames in episode.images.items():
         images |= stage_camera(folder, camera, frames, episode.goal_images[camera], _encode_png)

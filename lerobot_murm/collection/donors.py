@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 
-from lerobot_murm.collection.dataset import StagedEpisode, stage_camera, staging_folder
+from lerobot_murm.collection.dataset import StagedEpisode, episode_staging_folder, stage_camera
 from lerobot_murm.features import ACTION, ENVIRONMENT_STATE, STATE, goal_image_key, image_key
 
 
@@ -49,7 +49,7 @@ def _episode_rows(donor: Path, index: int) -> pa.Table:
 def stage_from_donor(donor: Path, index: int, dataset_root: Path, cameras: tuple[str, ...]) -> StagedEpisode:
     """Episode `index` of the donor, staged for `dataset_root` as `dataset.stage_episode` would."""
     rows = _episode_rows(donor, index)
-    folder = staging_folder(dataset_root, index)
+    folder = episode_staging_folder(dataset_root, index)
     images: dict[str, list[str]] = {}
     for camera in cameras:
         frames = [frame["bytes"] for frame in rows.column(image_key(camera)).to_pylist()]

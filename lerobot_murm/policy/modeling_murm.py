@@ -34,7 +34,16 @@ from lerobot_murm.policy.iql import (
 )
 from lerobot_murm.policy.precision import compute_dtype, matmul_precision, resolve_precision
 from lerobot_murm.policy.process_group import keep_process_group_until_exit
-from lerobot_murm.policy.replay import ACTION, DONE, KEEP, NEXT_STATE, REWARD, STATE, LatentReplay, replay_for_dataset
+from lerobot_murm.policy.replay import (
+    TRANSITION_ACTION,
+    TRANSITION_DONE,
+    TRANSITION_KEEP,
+    TRANSITION_NEXT_STATE,
+    TRANSITION_REWARD,
+    TRANSITION_STATE,
+    LatentReplay,
+    replay_for_dataset,
+)
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 LOGGED = ("value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight")
@@ -196,8 +205,8 @@ class MurmPolicy(PreTrainedPolicy):
     # --- learning --------------------------------------------------------------------------
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """IQL's loss on a batch of transitions (`murm train`) or of LeRobot dataset rows (`lerobot-train`)."""
-        transition = batch if STATE in batch else self.transitions_of_rows(batch["index"])
-        device = transition[STATE].device
+        transition = batch if TRANSITION_STATE in batch else self.transitions_of_rows(batch["index"])
+        device = transition[TRANSITION_STATE].device
         with matmul_precision(resolve_precision(self.config.precision, device), device):
             loss, logged = self.iql_loss(transition)
         return loss, dict(zip(LOGGED, logged.tolist(), strict=True))  # one device sync, not seven
@@ -217,14 +226,14 @@ class MurmPolicy(PreTrainedPolicy):
         capture it. A seed stack's transitions and weights have its seed dimension in front;
         then every loss and logged value has it too (one per seed)."""
         c = self.config
-        dtype = compute_dtype(transition[STATE].device)  # the networks' inputs, cast once for all of them
-        state = self.normalize(transition[STATE]).to(dtype)
-        next_state = self.normalize(transition[NEXT_STATE]).to(dtype)
-        action = transition[ACTION]
+        dtype = compute_dtype(transition[TRANSITION_STATE].device)  # the networks' inputs, cast once for all of them
+        state = self.normalize(transition[TRANSITION_STATE]).to(dtype)
+        next_state = self.normalize(transition[TRANSITION_NEXT_STATE]).to(dtype)
+        action = transition[TRANSITION_ACTION]
         actor_state, q_heads = state, None
         critic_input = state if c.method == "separated_q" else state.flatten(-2).unsqueeze(-2)
         if c.view_dropout:  # the same cameras vanish from s_t and s_t+1
-            keep = transition[KEEP]
+            keep = transition[TRANSITION_KEEP]
             actor_state = state * keep.unsqueeze(-1)
             if c.dropout_scope == "all":
                 state, next_state = actor_state, next_state * keep.unsqueeze(-1)
@@ -235,7 +244,7 @@ class MurmPolicy(PreTrainedPolicy):
         with torch.no_grad():
             q_target = self.critic_target(critic_input, action, q_heads).min(-2).values
             next_v = self.value(next_state.flatten(-2)).squeeze(-1)
-            td_target = transition[REWARD] + c.discount * (1.0 - transition[DONE]) * next_v
+            td_target = transition[TRANSITION_REWARD] + c.discount * (1.0 - transition[TRANSITION_DONE]) * next_v
             if c.clip_value:  # a sparse reward in [-cameras, 0] bounds every return
                 q_target = q_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
                 td_target = td_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
@@ -248,5 +257,5 @@ class MurmPolicy(PreTrainedPolicy):
         actor_loss = -(weights * log_prob).mean(-1)
         loss = value_loss + critic_loss + actor_loss
         logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(-1), v.mean(-1),
-                              transition[REWARD].mean(-1), weights.mean(-1)], dim=-1).detach()
+                              transition[TRANSITION_REWARD].mean(-1), weights.mean(-1)], dim=-1).detach()
         return loss, logged

@@ -31,11 +31,14 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_murm import features
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import camera_keep_mask, sparse_reward
-from lerobot_murm.vqvae.latent_cache import LatentCache, build_latent_cache, encoder_fingerprint
+from lerobot_murm.vqvae.encoder_files import encoder_fingerprint
+from lerobot_murm.vqvae.latent_cache import LatentCache, build_latent_cache
 from lerobot_murm.vqvae.latent_dataset import read_latent_caches
 
-# keys of a transition batch, what `MurmPolicy.forward` takes from `murm train`
-STATE, NEXT_STATE, ACTION, REWARD, DONE, KEEP = "state", "next_state", "action", "reward", "done", "keep"
+# keys of a transition batch, what `MurmPolicy.forward` takes from `murm train` (not the dataset's
+# feature keys, `features.STATE` / `ACTION` / `REWARD`)
+TRANSITION_STATE, TRANSITION_NEXT_STATE, TRANSITION_ACTION = "state", "next_state", "action"
+TRANSITION_REWARD, TRANSITION_DONE, TRANSITION_KEEP = "reward", "done", "keep"
 
 
 @dataclass
@@ -51,8 +54,9 @@ class Batch:
     keep: torch.Tensor  # (B, cameras) bool: the cameras view dropout keeps (all without dropout)
 
     def transition(self) -> dict[str, torch.Tensor]:
-        return {STATE: self.state, NEXT_STATE: self.next_state, ACTION: self.action, REWARD: self.reward,
-                DONE: self.done, KEEP: self.keep}
+        return {TRANSITION_STATE: self.state, TRANSITION_NEXT_STATE: self.next_state,
+                TRANSITION_ACTION: self.action, TRANSITION_REWARD: self.reward, TRANSITION_DONE: self.done,
+                TRANSITION_KEEP: self.keep}
 
     def split(self, seeds: int) -> Batch:
         """(seeds * B, ...) fields as (seeds, B, ...): one batch per seed of a stack."""

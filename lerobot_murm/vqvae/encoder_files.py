@@ -12,6 +12,7 @@ encoder, which `check_encoder` reports with the file it lacks.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -23,6 +24,7 @@ from lerobot_murm.checkpointing import write_synced
 
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
+METRICS_FILE = "metrics.json"  # beside them: what training measured (held-out PSNR, codebook use, steps)
 STAGING = ".saving"
 
 
@@ -32,6 +34,12 @@ class IncompleteEncoder(RuntimeError):
 
 def incomplete(directory: Path, why: str) -> IncompleteEncoder:
     return IncompleteEncoder(f"encoder {directory} is incomplete ({why}); run murm train-vqvae again to finish it")
+
+
+def encoder_fingerprint(directory: Path) -> str:
+    """The sha256 of the encoder's weights (hex): what latent caches, latent datasets and runs
+    record of the encoder they used."""
+    return hashlib.sha256((Path(directory) / WEIGHTS_FILE).read_bytes()).hexdigest()
 
 
 def save_encoder_files(directory: Path, weights: bytes, config: bytes) -> None:

@@ -8,7 +8,6 @@ the encoder's fingerprints: a changed dataset or encoder never gets a stale cach
 
 from __future__ import annotations
 
-import hashlib
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -18,8 +17,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from lerobot_murm.vqvae.encoder_files import encoder_fingerprint
 from lerobot_murm.vqvae.frames import dataset_fingerprint, decode_pngs, open_dataset, read_camera_pngs
-from lerobot_murm.vqvae.modeling_vqvae import VQVAE, WEIGHTS_FILE
+from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 ENCODE_BATCH = 1024
 
@@ -44,10 +44,6 @@ class LatentCache:
 def _lookup(codebook: np.ndarray, indices: np.ndarray) -> np.ndarray:
     vectors = codebook[indices.astype(np.int64)]  # (n, g, g, D)
     return np.ascontiguousarray(vectors.transpose(0, 3, 1, 2)).reshape(len(indices), -1)
-
-
-def encoder_fingerprint(encoder_dir: Path) -> str:
-    return hashlib.sha256((Path(encoder_dir) / WEIGHTS_FILE).read_bytes()).hexdigest()
 
 
 def cache_path(cache_dir: Path, camera: str, dataset_fp: str, encoder_fp: str) -> Path:

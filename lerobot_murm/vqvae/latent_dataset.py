@@ -28,8 +28,9 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot_murm.features import ENVIRONMENT_STATE, latent_goal_key, latent_key
 from lerobot_murm.vqvae.code_packing import code_bits, codes_per_number, pack_codes, unpack_codes
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
+from lerobot_murm.vqvae.encoder_files import CONFIG_FILE, encoder_fingerprint
 from lerobot_murm.vqvae.frames import dataset_fingerprint
-from lerobot_murm.vqvae.latent_cache import LatentCache, encoder_fingerprint
+from lerobot_murm.vqvae.latent_cache import LatentCache
 
 LATENTS_FILE = "meta/murm_latents.json"
 
@@ -63,7 +64,7 @@ def write_latent_dataset(
         "command": command,
         "cameras": {
             cache.camera: {
-                "encoder": json.loads((Path(encoder_dir) / "config.json").read_text()),
+                "encoder": json.loads((Path(encoder_dir) / CONFIG_FILE).read_text()),
                 "encoder_fingerprint": encoder_fingerprint(Path(encoder_dir)),
                 "codebook": cache.codebook.tolist(),
                 "code_bits": code_bits(len(cache.codebook)),  # `code_packing`: indices per int64 and their width

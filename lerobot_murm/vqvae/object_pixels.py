@@ -169,7 +169,7 @@ def save_object_reconstructions(model: VQVAE, images: np.ndarray, masks: np.ndar
     save_reconstructions(model, images, path, masks=masks, title=title)
 
 
-def markdown_table(results: list[dict]) -> str:
+def object_pixels_table(results: list[dict]) -> str:
     """One row per task and camera, as BENCHMARKS.md shows them."""
     lines = ["| task | camera | images | object visible | object pixels (mean) | PSNR whole image | PSNR object | "
              "PSNR background | reproduced |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]

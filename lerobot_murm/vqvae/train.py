@@ -21,6 +21,7 @@ from lerobot_murm.device import resolve_device
 from lerobot_murm.locking import exclusive
 from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
+from lerobot_murm.vqvae.encoder_files import METRICS_FILE
 from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
@@ -119,7 +120,7 @@ def _save_state(path: Path, model: VQVAE, optimizer, schedule, rng: np.random.Ge
 
 def _check_interrupted_has_state(out_dir: Path, state_path: Path) -> None:
     """An interrupted encoder without its resume state is an error, not a silent restart."""
-    metrics = out_dir / "metrics.json"
+    metrics = out_dir / METRICS_FILE
     if metrics.exists() and not state_path.exists() and json.loads(metrics.read_text()).get("interrupted"):
         raise CheckpointError(
             f"{out_dir} holds an interrupted encoder but its resume state {state_path.name} is missing; "
@@ -206,7 +207,7 @@ def _train_vqvae(repo_id: str, root: Path | None, camera: str, out_dir: Path, co
         "heldout": evaluate(model, holdout if len(holdout) else train_images[:1024], device),
         "device": str(device),
     }
-    write_atomic(out_dir / "metrics.json", (json.dumps(metrics, indent=2) + "\n").encode())
+    write_atomic(out_dir / METRICS_FILE, (json.dumps(metrics, indent=2) + "\n").encode())
     save_reconstructions(model.cpu(), holdout if len(holdout) else train_images, out_dir / "reconstructions.png")
     if loop.interrupted:
         raise TrainingInterrupted(

@@ -4,14 +4,19 @@ State s = (z_1, zg_1, ..., z_i, zg_i): one (latent, goal latent) pair per camera
 pieces here are plain torch and know nothing of LeRobot; `modeling_murm.py` wires
 them into a LeRobot policy and the fast trainer samples batches for them.
 
-- reward (eq. 4-5): per camera, 1 if ||z_k - zg_k||^2 < epsilon_k, summed, minus the
-  number of cameras: 0 when every view has reached its goal, -i when none has.
-- value (eq. 6/9): expectile regression of V(s) towards min(Q1, Q2)(s, a) of the targets.
-- Q (eq. 7/10): TD regression towards r + gamma (1 - done) V(s').
-- policy (eq. 8): advantage-weighted log-likelihood, weights exp(beta A) clipped.
-- separated Q (eq. 11): one Q per camera on (z_k, zg_k, a), averaged.
-- dropout: whole (z_k, zg_k) pairs zeroed with probability p, never all cameras; with
-  separated Q a dropped camera's Q_k may instead be left out of the mean.
+- reward (eq. 4-5, `sparse_reward`): per camera, 1 if ||z_k - zg_k||^2 < epsilon_k, summed,
+  minus the number of cameras: 0 when every view has reached its goal, -i when none has.
+- value (eq. 6/9, `value_loss`): expectile regression of V(s) towards min(Q1, Q2)(s, a) of
+  the targets.
+- Q (eq. 7/10, `critic_loss`): TD regression towards r + gamma (1 - done) V(s') (`td_target`).
+- policy (eq. 8, `actor_loss`): advantage-weighted log-likelihood, weights exp(beta A) clipped.
+- separated Q (eq. 11, `DoubleQ` with one group per camera): one Q per camera on
+  (z_k, zg_k, a), averaged.
+- dropout (`camera_keep_mask` draws it, `drop_views` applies it): whole (z_k, zg_k) pairs
+  zeroed with probability p, never all cameras; with separated Q a dropped camera's Q_k may
+  instead be left out of the mean.
+
+`MurmPolicy.iql_loss` (modeling_murm.py) is these pieces in a row, as CORL's IQL writes them.
 
 Every network and loss here also takes leading dimensions before the batch: the seeds of a
 seed stack (`seed_stack.py`), whose weights carry the same leading dimension. Losses
@@ -24,6 +29,8 @@ to [-1, 1] (no tanh change of variables, as in IQL's reference implementation).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -47,6 +54,71 @@ def expectile_loss(diff: torch.Tensor, expectile: float) -> torch.Tensor:
 def advantage_weights(advantage: torch.Tensor, beta: float, max_weight: float) -> torch.Tensor:
     """exp(beta * A), clipped at `max_weight` (eq. 8); no gradient flows into the critics."""
     return torch.exp(beta * advantage.detach()).clamp(max=max_weight)
+
+
+def value_loss(value: nn.Module, state: torch.Tensor, q_target: torch.Tensor,
+               expectile: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 6 (eq. 9 with separated Q): L_V = E[L_2^tau(min(Q^_1, Q^_2)(s, a) - V(s))], the
+    target critics' value `q_target` against V(s). Returns the loss and V(s)."""
+    v = value(state.flatten(-2)).squeeze(-1)
+    return expectile_loss(q_target - v, expectile), v
+
+
+def td_target(value: nn.Module, reward: torch.Tensor, done: torch.Tensor, next_state: torch.Tensor,
+              discount: float) -> torch.Tensor:
+    """r + gamma (1 - done) V(s'), the regression target of eq. 7 and 10."""
+    next_v = value(next_state.flatten(-2)).squeeze(-1)
+    return reward + discount * (1.0 - done) * next_v
+
+
+def critic_loss(critic: DoubleQ, critic_input: torch.Tensor, action: torch.Tensor, q_heads: torch.Tensor | None,
+                target: torch.Tensor) -> torch.Tensor:
+    """Eq. 7 (eq. 10 with separated Q, Q the mean of eq. 11): L_Q = E[(target - Q(s, a))^2] for
+    each of the clipped double Q's two sets, their MSEs summed."""
+    q = critic(critic_input, action, q_heads)
+    return (q - target.unsqueeze(-2)).pow(2).mean(-1).sum(-1)
+
+
+def actor_loss(actor: GaussianPolicy, state: torch.Tensor, action: torch.Tensor, advantage: torch.Tensor,
+               beta: float, max_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 8: L_pi = -E[exp(beta (Q^(s, a) - V(s))) log pi(a | s)], the weights clipped at
+    `max_weight` (`advantage_weights`). Returns the loss and the weights."""
+    weights = advantage_weights(advantage, beta, max_weight)
+    log_prob = actor.distribution(state.flatten(-2)).log_prob(action.clamp(-1.0, 1.0)).sum(-1)
+    return -(weights * log_prob).mean(-1), weights
+
+
+@dataclass
+class Views:
+    """What each network sees of s_t and s_t+1, (B, cameras, 2 * latent) each, after view dropout."""
+
+    state: torch.Tensor  # V(s)'s input
+    next_state: torch.Tensor  # V(s')'s input, for the TD target
+    critic: torch.Tensor  # the critics' input: (B, cameras, 2 * latent) with separated Q, else (B, 1, all)
+    actor: torch.Tensor  # the policy's input
+    q_heads: torch.Tensor | None  # (B, cameras) bool: the Q heads each row averages (None: all of them)
+
+
+def drop_views(state: torch.Tensor, next_state: torch.Tensor, keep: torch.Tensor | None, separated_q: bool,
+               scope: str = "all", dropped_q: str = "zeros") -> Views:
+    """The dropout method (paper 4.3): the (z_k, zg_k) pairs `keep` drops are zeroed, the same
+    cameras in s_t and s_t+1 (`keep` None: no dropout). `scope` "all" (the paper) shows the
+    dropped state to V, Q and the policy, "actor" to the policy alone. `dropped_q` "excluded"
+    (separated Q, scope "all"): each Q_k keeps its own pair and the dropped cameras' Q_k leave
+    eq. 11's mean instead of seeing a zero pair."""
+
+    def critic_input(s: torch.Tensor) -> torch.Tensor:
+        return s if separated_q else s.flatten(-2).unsqueeze(-2)
+
+    if keep is None:
+        return Views(state, next_state, critic_input(state), state, None)
+    dropped = state * keep.unsqueeze(-1)
+    if scope == "actor":
+        return Views(state, next_state, critic_input(state), dropped, None)
+    next_dropped = next_state * keep.unsqueeze(-1)
+    if dropped_q == "excluded":
+        return Views(dropped, next_dropped, critic_input(state), dropped, keep)
+    return Views(dropped, next_dropped, critic_input(dropped), dropped, None)
 
 
 @torch.no_grad()

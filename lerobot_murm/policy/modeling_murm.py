@@ -22,16 +22,9 @@ from lerobot.policies.pretrained import PreTrainedPolicy
 from torch import Tensor, nn
 
 from lerobot_murm.features import goal_image_key, image_key
+from lerobot_murm.policy import iql
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.iql import (
-    DoubleQ,
-    GaussianPolicy,
-    advantage_weights,
-    camera_keep_mask,
-    expectile_loss,
-    mlp,
-    polyak_update,
-)
+from lerobot_murm.policy.iql import DoubleQ, GaussianPolicy, camera_keep_mask, mlp, polyak_update
 from lerobot_murm.policy.precision import compute_dtype, matmul_precision, resolve_precision
 from lerobot_murm.policy.process_group import keep_process_group_until_exit
 from lerobot_murm.policy.replay import (
@@ -227,35 +220,24 @@ class MurmPolicy(PreTrainedPolicy):
         then every loss and logged value has it too (one per seed)."""
         c = self.config
         dtype = compute_dtype(transition[TRANSITION_STATE].device)  # the networks' inputs, cast once for all of them
-        state = self.normalize(transition[TRANSITION_STATE]).to(dtype)
-        next_state = self.normalize(transition[TRANSITION_NEXT_STATE]).to(dtype)
-        action = transition[TRANSITION_ACTION]
-        actor_state, q_heads = state, None
-        critic_input = state if c.method == "separated_q" else state.flatten(-2).unsqueeze(-2)
-        if c.view_dropout:  # the same cameras vanish from s_t and s_t+1
-            keep = transition[TRANSITION_KEEP]
-            actor_state = state * keep.unsqueeze(-1)
-            if c.dropout_scope == "all":
-                state, next_state = actor_state, next_state * keep.unsqueeze(-1)
-                if c.dropped_q == "excluded":  # each Q_k sees its own pair; dropped ones leave the mean
-                    q_heads = keep
-                else:
-                    critic_input = state if c.method == "separated_q" else state.flatten(-2).unsqueeze(-2)
+        views = iql.drop_views(
+            self.normalize(transition[TRANSITION_STATE]).to(dtype),
+            self.normalize(transition[TRANSITION_NEXT_STATE]).to(dtype),
+            transition[TRANSITION_KEEP] if c.view_dropout else None,
+            separated_q=c.method == "separated_q", scope=c.dropout_scope, dropped_q=c.dropped_q,
+        )
+        action, reward, done = transition[TRANSITION_ACTION], transition[TRANSITION_REWARD], transition[TRANSITION_DONE]
         with torch.no_grad():
-            q_target = self.critic_target(critic_input, action, q_heads).min(-2).values
-            next_v = self.value(next_state.flatten(-2)).squeeze(-1)
-            td_target = transition[TRANSITION_REWARD] + c.discount * (1.0 - transition[TRANSITION_DONE]) * next_v
+            q_target = self.critic_target(views.critic, action, views.q_heads).min(-2).values  # clipped double Q
+            target = iql.td_target(self.value, reward, done, views.next_state, c.discount)
             if c.clip_value:  # a sparse reward in [-cameras, 0] bounds every return
                 q_target = q_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
-                td_target = td_target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
-        v = self.value(state.flatten(-2)).squeeze(-1)
-        value_loss = expectile_loss(q_target - v, c.expectile)
-        q = self.critic(critic_input, action, q_heads)
-        critic_loss = (q - td_target.unsqueeze(-2)).pow(2).mean(-1).sum(-1)  # both sets' MSE
-        weights = advantage_weights(q_target - v, c.temperature, c.max_advantage_weight)
-        log_prob = self.actor.distribution(actor_state.flatten(-2)).log_prob(action.clamp(-1.0, 1.0)).sum(-1)
-        actor_loss = -(weights * log_prob).mean(-1)
+                target = target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
+        value_loss, v = iql.value_loss(self.value, views.state, q_target, c.expectile)
+        critic_loss = iql.critic_loss(self.critic, views.critic, action, views.q_heads, target)
+        actor_loss, weights = iql.actor_loss(self.actor, views.actor, action, q_target - v, c.temperature,
+                                             c.max_advantage_weight)
         loss = value_loss + critic_loss + actor_loss
-        logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(-1), v.mean(-1),
-                              transition[TRANSITION_REWARD].mean(-1), weights.mean(-1)], dim=-1).detach()
+        logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(-1), v.mean(-1), reward.mean(-1),
+                              weights.mean(-1)], dim=-1).detach()
         return loss, logged

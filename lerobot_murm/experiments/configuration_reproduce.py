@@ -47,6 +47,32 @@ class TrainSpec:
 
 
 @dataclass
+class BudgetSpec:
+    """A table's one budget, chosen on validation curves (study v2's protocol, REPORT.md):
+    every run trains to `cap`, evaluated every `every` updates on `episodes` validation
+    episodes; a cell's curve is its seeds' mean and flattens where `flattening.py` says (the
+    pooled episodes of all seeds); the budget is the latest flattening point over the cells,
+    tasks and masking levels, rounded up to `every`. A cell still rising at the cap doubles
+    the cap for the whole table, up to `max_cap`. Every run is then tested once, at the
+    budget, from the policy it kept there."""
+
+    cap: int = 100_000
+    every: int = 10_000
+    episodes: int = 100
+    at_least: int = 0  # the budget is at least this ...
+    unless_flat_before: int = 0  # ... unless every curve flattens before this many updates
+    max_cap: int = 400_000
+
+    def check(self) -> None:
+        """Called by the grid's config (draccus would hide this message behind its own)."""
+        if min(self.every, self.episodes) < 1 or self.cap < self.every or self.cap % self.every:
+            raise ValueError(f"budget: cap ({self.cap}) must be a positive multiple of every ({self.every}), "
+                             f"and episodes at least 1")
+        if self.max_cap < self.cap or self.at_least > self.max_cap:
+            raise ValueError(f"budget: max_cap ({self.max_cap}) must be at least cap ({self.cap}) and at_least")
+
+
+@dataclass
 class CellSpec:
     method: str
     cameras: list[str]
@@ -112,6 +138,9 @@ class ReproduceConfig:
     # train each cell's seeds side by side as one stacked model (policy/seed_stack.py), in one
     # job; false: every seed its own job. Timed grids never stack.
     stack_seeds: bool = True
+    # one budget for every cell, chosen on validation curves (BudgetSpec); none: each cell
+    # trains `train.steps` (or its own `steps`) and is tested at the end
+    budget: BudgetSpec | None = None
 
     def __post_init__(self) -> None:
         unknown = [t for t in self.tasks if t not in TASK_NAMES]
@@ -130,6 +159,12 @@ class ReproduceConfig:
             raise ValueError(f"cell labels must be unique, got {labels}")
         if not self.seeds or min(self.seeds) < 0:
             raise ValueError(f"seeds must be a non-empty list of numbers >= 0, got {self.seeds}")
+        if self.budget is not None:
+            self.budget.check()
+            if any(cell.steps for cell in self.cells):
+                raise ValueError("a grid with a budget trains every cell alike: no cell may set steps")
+            if self.timed or self.report_split != "test":
+                raise ValueError("a grid with a budget reports test numbers and is not timed")
         self.validate_stages()
 
     def cell_episodes(self, cell: CellSpec | None = None) -> int:
@@ -141,8 +176,22 @@ class ReproduceConfig:
         return self.collection.noisy_fraction if cell is None or cell.noisy_fraction is None else cell.noisy_fraction
 
     def cell_steps(self, cell: CellSpec) -> int:
-        """Updates of the cell's runs."""
-        return cell.steps or self.train.steps
+        """Updates of the cell's runs (a budget grid: its first cap)."""
+        return self.budget.cap if self.budget else cell.steps or self.train.steps
+
+    def train_settings(self, cell: CellSpec, steps: int | None = None) -> dict:
+        """The TrainConfig fields a cell's runs share (`steps`: a budget grid's current cap).
+        A budget grid evaluates every `budget.every` updates on its validation episodes, keeps
+        the policy there and leaves the test episodes to the budget (`test_kept`)."""
+        t, b = self.train, self.budget
+        settings = {"steps": steps or self.cell_steps(cell), "batch_size": t.batch_size, "log_every": t.log_every,
+                    "eval_every": t.eval_every, "eval_episodes": t.eval_episodes,
+                    "final_eval_episodes": t.final_eval_episodes, "eval_mask_p": list(cell.eval_mask_p),
+                    "eval_envs": t.eval_envs, "eval_authors_masking": cell.eval_authors_masking}
+        if b is not None:
+            settings |= {"eval_every": b.every, "eval_episodes": b.episodes, "final_eval_episodes": b.episodes,
+                         "keep_every": b.every, "final_test": False}
+        return settings
 
     def validate_stages(self) -> None:
         """Every stage's config of every cell, built as the grid will build it (no disk): a
@@ -157,7 +206,7 @@ class ReproduceConfig:
             raise ValueError(f"vqvae.camera_steps: unknown cameras {unknown}; choose from {list(CAMERA_NAMES)}")
         for steps in {self.vqvae.steps, *self.vqvae.camera_steps.values()}:
             VQVAEConfig(steps=steps, batch_size=self.vqvae.batch_size)
-        c, t = self.collection, self.train
+        c = self.collection
         for cell in self.cells:
             try:
                 policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), epsilon=cell.epsilon,
@@ -168,12 +217,7 @@ class ReproduceConfig:
                         image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,
                         noisy_fraction=self.cell_noisy_fraction(cell),
                     )
-                    TrainConfig(
-                        dataset="", task=task, policy=policy, steps=self.cell_steps(cell), batch_size=t.batch_size,
-                        log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
-                        final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p),
-                        eval_envs=t.eval_envs, seed=min(self.seeds),
-                    )
+                    TrainConfig(dataset="", task=task, policy=policy, seed=min(self.seeds), **self.train_settings(cell))
             except (TypeError, ValueError) as error:
                 raise ValueError(f"cell {cell.label}: {error}") from error
 

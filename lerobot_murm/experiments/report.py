@@ -252,6 +252,9 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
                f"than two standard errors; `lerobot_murm/experiments/flattening.py`):\n\n"
                f"{flattening_table(runs, config.train.eval_episodes)}\n"
                if config.choose_updates else "")
+            + (f"The table's one budget, chosen on the seeds' mean validation curves before any test episode "
+               f"(`lerobot_murm/experiments/budget.py`):\n\n{budget.read_text().strip()}\n\n"
+               if (budget := results / "budget.md").exists() else "")
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
             + "Runs:\n\n" + run_list(results, split)
         )

@@ -38,6 +38,7 @@ from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
 from lerobot_murm.env.murm_env import SCENE_VERSION
 from lerobot_murm.expert import default_noise_std
+from lerobot_murm.experiments.budget import budget_markdown, choose_budget
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, read_result, write_tables
@@ -45,7 +46,7 @@ from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import cpu_description, resolve_precision
-from lerobot_murm.policy.train import TrainConfig, train_seeds
+from lerobot_murm.policy.train import TrainConfig, test_kept, train_seeds
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.encoder_files import CONFIG_FILE, WEIGHTS_FILE, save_encoder_files
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
@@ -246,16 +247,15 @@ def _rounded(value: float | None) -> float | None:
     return None if value is None else round(value, 4)
 
 
-def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, root: Path, encoders: Path) -> TrainConfig:
+def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, root: Path, encoders: Path,
+                 steps: int | None = None) -> TrainConfig:
+    """A run's TrainConfig (`steps`: a budget grid's current cap)."""
     policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), encoder_dir=str(encoders),
                         epsilon=cell_epsilon(cell, encoders), **cell.policy)
-    t = config.train
     return TrainConfig(
         dataset=str(root), task=task, policy=policy, output_dir=str(run_dir(config, task, cell, seed)),
-        cache_dir=str(Path(config.work_dir) / "latent_cache"), steps=config.cell_steps(cell), batch_size=t.batch_size,
-        seed=seed, device=config.device, log_every=t.log_every, eval_every=t.eval_every, eval_episodes=t.eval_episodes,
-        final_eval_episodes=t.final_eval_episodes, eval_mask_p=list(cell.eval_mask_p), eval_envs=t.eval_envs,
-        eval_authors_masking=cell.eval_authors_masking,
+        cache_dir=str(Path(config.work_dir) / "latent_cache"), seed=seed, device=config.device,
+        **config.train_settings(cell, steps),
     )
 
 
@@ -314,6 +314,7 @@ def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) ->
         "method": cell.method, "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales,
         "policy": policy_overrides(cell.method, cell.cameras, cell.policy), "vqvae": asdict(config.vqvae),
         "train": asdict(config.train) | {"steps": config.cell_steps(cell)}, "seed": seed,
+        **({"budget": asdict(config.budget)} if config.budget else {}),
         # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
         "precision": str(resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))),
     }))
@@ -344,10 +345,11 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
     return None
 
 
-def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int]) -> list[dict]:
+def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int], steps: int | None = None) -> list[dict]:
     """The training runs of a cell's `seeds` and their final evaluations (each resumed from its
     checkpoint, or read back when finished), side by side as one stacked model when there are
-    several (`murm train` with seeds); their results, for the driver to store."""
+    several (`murm train` with seeds); their results, for the driver to store. `steps`: a
+    budget grid's current cap (its runs end with validation episodes only)."""
     root = ensure_dataset(collect_config(config, task, cell))
     encoders_from = ensure_dataset(collect_config(config, task))
     encoders = encoder_dir(config, encoders_from)
@@ -358,8 +360,28 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[in
     with ExitStack() as locks:
         for seed in seeds:
             locks.enter_context(exclusive(run_dir(config, task, cell, seed), wait=True))
-        summaries = train_seeds([train_config(config, task, cell, seed, root, encoders) for seed in seeds])
+        summaries = train_seeds([train_config(config, task, cell, seed, root, encoders, steps) for seed in seeds])
     return [run_result(config, task, cell, root, encoders, summary, start) for summary in summaries]
+
+
+def test_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int], budget: int,
+             curves: list[dict]) -> list[dict]:
+    """A budget grid's runs of a cell, tested once at `budget` from the policies they kept
+    there; their results (the training's wall time and curve from `curves`, to the cap)."""
+    root = ensure_dataset(collect_config(config, task, cell))
+    encoders = encoder_dir(config, ensure_dataset(collect_config(config, task)))
+    configs = [train_config(config, task, cell, seed, root, encoders) for seed in seeds]
+    results = []
+    for summary, trained in zip(test_kept(configs, budget), curves, strict=True):
+        result = run_result(config, task, cell, root, encoders, summary | {"wall_s": trained["wall_s"]}, 0.0)
+        results.append(result | {"curve": trained["curve"], "budget": budget, "trained_to": trained["steps"],
+                                 "recipe": budget_recipe(result["recipe"], budget)})
+    return results
+
+
+def budget_recipe(recipe: dict, budget: int) -> dict:
+    """A budget grid's run as tested: its recipe at `budget` updates."""
+    return recipe | {"train": recipe["train"] | {"steps": budget}}
 
 
 def run_result(config: ReproduceConfig, task: str, cell: CellSpec, root: Path, encoders: Path, summary: dict,
@@ -506,6 +528,68 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
         return _run_grid(config, executor, out)
 
 
+def _run_budget_grid(config: ReproduceConfig, shipped: ReproduceConfig, executor, out: Path,
+                     grid_record: ReproduceConfig, grid: list[tuple]) -> Path:
+    """A budget grid (`budget`): every run to the cap on validation episodes, the cap doubled
+    while a mean curve still rises at it, the budget chosen by the rule (budget.json,
+    budget.md), then every run tested once at the budget (runs/)."""
+    spec, curves_dir = config.budget, out / "curves"
+    decision_file = out / "budget.json"
+    # a later sitting starts at the cap an earlier one had reached
+    cap = max(spec.cap, json.loads(decision_file.read_text())["cap"] if decision_file.exists() else 0)
+    while True:
+        todo = [(shipped, task, cell, seed) for task, cell, seed in grid
+                if not _stored_at(curves_dir / result_path(config, task, cell, seed).name,
+                                  run_recipe(config, task, cell, seed), cap)]
+        needed = {c.root: c for _, task, cell, _ in todo for c in (collect_config(shipped, task, cell),
+                                                                    collect_config(shipped, task))}
+        build_datasets(executor, list(needed.values()), config.collection.workers)
+        build_encoders(executor, shipped, sorted({(encoder_root(shipped, task), camera)
+                                                  for _, task, cell, _ in todo for camera in cell.cameras}))
+        jobs = [job + (cap,) for job in training_jobs(todo, together=config.stack_seeds)]
+        started, finished = time.perf_counter(), 0
+        for (_, task, cell, seeds, _), results in executor.map(train_run, jobs):
+            for seed, result in zip(seeds, results, strict=True):
+                finished += 1
+                _store(curves_dir / result_path(config, task, cell, seed).name, result)
+                print(f"[{finished}/{len(todo)}] {task} {cell.label} seed {seed}: trained to {cap:,} updates "
+                      f"(validation only)" + remaining_time(time.perf_counter() - started, finished,
+                                                             len(todo) - finished), flush=True)
+        curves = {(task, cell.label, seed): read_result(curves_dir / result_path(config, task, cell, seed).name)
+                  for task, cell, seed in grid}
+        decision = choose_budget(spec, list(curves.values()), cap, len(config.seeds))
+        write_atomic(decision_file, (json.dumps(decision, indent=1) + "\n").encode())
+        write_atomic(out / "budget.md", budget_markdown(decision).encode())
+        if decision["flat"] or cap >= spec.max_cap:
+            break
+        cap = min(2 * cap, spec.max_cap)
+        print(f"{config.name}: a mean validation curve still rises at the cap; training every run on to {cap:,}")
+    budget = decision["budget"]
+    print(f"{config.name}: budget {budget:,} updates (budget.md); testing every run there", flush=True)
+    todo = [(shipped, task, cell, seed) for task, cell, seed in grid
+            if not _stored_at(result_path(config, task, cell, seed), budget_recipe(run_recipe(config, task, cell, seed),
+                                                                                   budget), budget)]
+    jobs = [(*job, budget, [curves[(job[1], job[2].label, seed)] for seed in job[3]])
+            for job in training_jobs(todo, together=True)]
+    for (_, task, cell, seeds, _, _), results in executor.map(test_run, jobs):
+        for seed, result in zip(seeds, results, strict=True):
+            _store(result_path(config, task, cell, seed), result)
+    rows = write_tables(grid_record, grid_results(grid_record, out / "runs"), out)
+    print(markdown_table(rows))
+    return out
+
+
+def _stored_at(path: Path, recipe: dict, steps: int) -> bool:
+    """Whether a budget grid's result at `path` holds its run at `steps` updates, trained by
+    `recipe`. A result of another recipe (its cell changed, or an earlier study's run of the
+    same name) is set aside; its run trains again, from its checkpoint where it can."""
+    stored = read_result(path) if path.exists() else None
+    if stored is not None and not same_recipe(stored.get("recipe"), recipe):
+        print(f"{path.name}: another recipe than its cell's (set aside in {set_aside(path).parent})", flush=True)
+        return False
+    return stored is not None and stored["steps"] == steps
+
+
 def _run_grid(config: ReproduceConfig, executor, out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     grid_record = grid_so_far(config, out / "config.yaml")
@@ -515,6 +599,8 @@ def _run_grid(config: ReproduceConfig, executor, out: Path) -> Path:
     # jobs may run on other machines, in another working directory: absolute paths
     shipped = replace(config, work_dir=str(Path(config.work_dir).resolve()))
     grid = [(task, cell, seed) for task in config.tasks for cell in config.cells for seed in config.seeds]
+    if config.budget is not None:
+        return _run_budget_grid(config, shipped, executor, out, grid_record, grid)
     todo = []
     for task, cell, seed in grid:
         path, recipe = result_path(config, task, cell, seed), run_recipe(config, task, cell, seed)

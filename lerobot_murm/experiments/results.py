@@ -133,6 +133,8 @@ def plot_curves(results: list[dict], path: Path) -> None:
             style = "-" if mask_p == 0 else (":" if mask_p < 0.3 else "--")
             ax.plot(steps, values.mean(0), style, color=color, marker="o", markersize=3, label=label)
             ax.fill_between(steps, values.min(0), values.max(0), color=color, alpha=0.15)
+        for budget in sorted({r["budget"] for r in results if r["task"] == task and "budget" in r}):
+            ax.axvline(budget, color="grey", linestyle="-.", linewidth=1, label=f"the table's budget ({budget:,})")
         ax.set(title=task, xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102))
     handles, labels = axes[0, 0].get_legend_handles_labels()
     ncol = 3 if len(tasks) > 1 else 2  # one narrow panel: long labels in two columns

@@ -22,6 +22,7 @@ On CUDA every update is replayed from a CUDA graph (`cuda_graph.py`).
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
@@ -53,7 +54,7 @@ from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.cuda_graph import CudaGraph, Updates, make_capturable
 from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
-from lerobot_murm.policy.learning_curve import plot_learning_curve
+from lerobot_murm.policy.learning_curve import plot_learning_curve, read_run_csv
 from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
@@ -96,6 +97,13 @@ class TrainConfig:
     # choice are made on these; the test range (test_seed + i) gives the reported numbers only
     validation_seed: int = VALIDATION_SEED
     test_seed: int = TEST_SEED
+    # also keep the policy of every evaluation step that is a multiple of this, in
+    # checkpoints/<step>/pretrained_model: a budget grid tests its runs at a step it chooses
+    # after training (`test_kept`); 0 keeps only the last
+    keep_every: int = 0
+    # evaluate on the test episodes at the end of training; false: validation episodes only
+    # (a budget grid's runs are tested once, at the budget its rule picks)
+    final_test: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.policy, MurmConfig):
@@ -110,6 +118,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be at least 1, got {value}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.keep_every < 0 or (self.keep_every and self.keep_every % self.eval_every):
+            raise ValueError(f"keep_every must be 0 or a multiple of eval_every ({self.eval_every}), got {self.keep_every}")
         if (self.seeds and min(self.seeds) < 0) or len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"seeds must be distinct and >= 0, got {self.seeds}")
         if not self.eval_mask_p or not all(0.0 <= p < 1.0 for p in self.eval_mask_p):
@@ -215,6 +225,20 @@ class SeedRun:
     @property
     def last(self) -> Path:
         return self.out / "checkpoints" / "last"
+
+    def keep(self, step: int) -> None:
+        """A copy of the last checkpoint's policy as the policy at `step` (`keep_every`)."""
+        kept = kept_policy(self.out, step)
+        if kept.exists():  # kept before a stop, at this very step
+            return
+        tmp = staging_folder(kept.parent)
+        shutil.copytree(self.last / "pretrained_model", tmp / kept.name)
+        tmp.rename(kept.parent)  # whole or absent
+
+
+def kept_policy(run_dir: Path, step: int) -> Path:
+    """Where a run keeps its policy at `step` (`keep_every`)."""
+    return Path(run_dir) / "checkpoints" / f"{step:06d}" / "pretrained_model"
 
 
 def train(config: TrainConfig) -> list[dict]:
@@ -347,6 +371,9 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
                         append_rows(run.out / "eval.csv", EVAL_COLUMNS, own)
                     loop.show(success=f"{rows[0][0]['success_rate']:.2f}")
                     checkpoint()
+                    if config.keep_every and loop.step % config.keep_every == 0:
+                        for run in runs:
+                            run.keep(loop.step)
                     for run in runs:
                         plot_learning_curve(run.out)
                     window_start = time.perf_counter()  # the window's rate leaves the evaluation out
@@ -359,7 +386,11 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
             validation_seeds = evaluation_seeds(config.final_eval_episodes, config.validation_seed)
             final_validation = run_evaluation(loop.step, validation_seeds, "validation", config.eval_authors_masking)
             test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
-            final = run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking)
+            final = (run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking) if config.final_test
+                     else [[] for _ in runs])
+            if config.keep_every:
+                for run in runs:
+                    run.keep(loop.step)
     for run, validation_rows, test_rows in zip(runs, final_validation, final, strict=True):
         append_rows(run.out / "eval.csv", EVAL_COLUMNS, validation_rows + test_rows)
         plot_learning_curve(run.out)
@@ -370,7 +401,7 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
             "steps": loop.step,
             "seed": run.config.seed,
             "validation_seeds": [validation_seeds[0], validation_seeds[-1]],
-            "eval_seeds": [test_seeds[0], test_seeds[-1]],  # the test range
+            "eval_seeds": [test_seeds[0], test_seeds[-1]] if config.final_test else None,  # the test range
             "final_validation": validation_rows,
             "final": test_rows,
             "checkpoint": str(run.last / "pretrained_model"),
@@ -378,6 +409,56 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
             "seeds_together": len(runs),  # its wall time and steps/s are those of all of them
         }
         write_atomic(run.out / "final_eval.json", (json.dumps(run.summary, indent=2) + "\n").encode())
+
+
+def test_kept(configs: list[TrainConfig], step: int) -> list[dict]:
+    """Seeds' runs trained with `keep_every`, tested once at `step` (a budget chosen after
+    training on their validation curves): each one's summary as a run finished at `step`
+    would write it, its validation rows read from eval.csv. Kept in test_<step>.json, which a
+    second call reads back."""
+    first = configs[0]
+    with ExitStack() as locks:
+        for c in configs:
+            locks.enter_context(exclusive(Path(c.output_dir)))
+        stored = [Path(c.output_dir) / f"test_{step}.json" for c in configs]
+        if all(path.exists() for path in stored):
+            return [json.loads(path.read_text()) for path in stored]
+        device = resolve_device(first.device)
+        kept = [kept_policy(Path(c.output_dir), step) for c in configs]
+        missing = [str(path) for path in kept if not path.exists()]
+        if missing:
+            raise CheckpointError(f"no policy kept at step {step}: {', '.join(missing)} (train with keep_every)")
+        start = time.perf_counter()
+        policies = [MurmPolicy.from_pretrained(path).to(device) for path in kept]
+        levels = [(p, "paper") for p in first.eval_mask_p] + ([(1 / 3, "authors")] if first.eval_authors_masking else [])
+        test_seeds = evaluation_seeds(first.final_eval_episodes, first.test_seed)
+        image_size = policies[0].config.encoder_config(policies[0].config.cameras[0]).image_size
+        rows: list[list[dict]] = [[] for _ in configs]
+        with Evaluator(first.task, policies[0].config.cameras, image_size, first.eval_envs, len(policies)) as evaluator:
+            for mask_p, mode in levels:
+                for own, result in zip(rows, evaluator.evaluate(policies, test_seeds, mask_p, mode), strict=True):
+                    own.append({"step": step, "mask_p": round(mask_p, 4), "success_rate": result.success_rate,
+                                "episodes": len(test_seeds), "seconds": round(result.seconds, 1), "split": "test",
+                                "mask_mode": mode})
+        summaries = []
+        for config, path, test_rows in zip(configs, stored, rows, strict=True):
+            validation = [r | {"step": int(r["step"]), "episodes": int(r["episodes"])}
+                          for r in read_run_csv(Path(config.output_dir) / "eval.csv")
+                          if r["split"] == "validation" and r["step"] == step]
+            if {r["episodes"] for r in validation} != {first.final_eval_episodes}:
+                raise CheckpointError(f"{config.output_dir}/eval.csv has no validation rows of "
+                                      f"{first.final_eval_episodes} episodes at step {step}")
+            summary = {
+                "method": first.policy.method, "cameras": first.policy.cameras, "task": first.task, "steps": step,
+                "seed": config.seed,
+                "validation_seeds": [first.validation_seed, first.validation_seed + first.final_eval_episodes - 1],
+                "eval_seeds": [test_seeds[0], test_seeds[-1]],
+                "final_validation": [{k: r[k] for k in EVAL_COLUMNS} for r in validation], "final": test_rows,
+                "checkpoint": str(kept[configs.index(config)]), "test_s": round(time.perf_counter() - start, 1),
+            }
+            write_atomic(path, (json.dumps(summary, indent=2) + "\n").encode())
+            summaries.append(summary)
+        return summaries
 
 
 def load_train_config(path: str | Path, overrides: list[str] | None = None) -> TrainConfig:

@@ -45,7 +45,7 @@ def _collect(args: argparse.Namespace) -> None:
 
 
 def _push(args: argparse.Namespace) -> None:
-    from lerobot_murm.collection.hub import push_dataset
+    from lerobot_murm.publishing import push_dataset
 
     push_dataset(Path(args.root), args.repo_id, private=args.private)
     print(f"pushed {args.root} to https://huggingface.co/datasets/{args.repo_id}")
@@ -53,7 +53,7 @@ def _push(args: argparse.Namespace) -> None:
 
 def _pull(args: argparse.Namespace) -> None:
     from lerobot_murm.checks import check_writable
-    from lerobot_murm.collection.hub import pull_dataset
+    from lerobot_murm.publishing import pull_dataset
 
     check_writable(Path(args.root))
     dataset = pull_dataset(args.repo_id, Path(args.root))
@@ -108,7 +108,12 @@ def _encode_locked(args: argparse.Namespace, repo_id: str, root: Path | None, ca
     from lerobot_murm.collection.dataset import episode_successes
     from lerobot_murm.vqvae.frames import open_dataset
     from lerobot_murm.vqvae.latent_cache import build_latent_cache
-    from lerobot_murm.vqvae.latent_distance import distance_statistics, plot_distances, public_statistics, save_beside_encoder
+    from lerobot_murm.vqvae.latent_distance import (
+        distance_statistics,
+        plot_distances,
+        public_statistics,
+        save_beside_encoder,
+    )
 
     open_dataset(repo_id, root)  # a missing or unreadable dataset fails here, in one line
     successes = episode_successes(repo_id, root)
@@ -146,14 +151,14 @@ def _write_latents(args: argparse.Namespace, repo_id: str, root: Path | None, ca
 
 def _check_encoders(args: argparse.Namespace) -> None:
     from lerobot_murm.vqvae.frames import dataset_location
-    from lerobot_murm.vqvae.object_pixels import check_encoders, markdown_table
+    from lerobot_murm.vqvae.object_pixels import check_encoders, object_pixels_table
 
     repo_id, root = dataset_location(args.dataset)
     try:
         results = check_encoders(repo_id, root, [Path(e) for e in args.encoders], args.episodes, device=args.device)
     except ValueError as error:
         raise SystemExit(f"murm check-encoders: {error}") from None
-    print(markdown_table(results))
+    print(object_pixels_table(results))
     print("wrote object_pixels.json and object_reconstructions.png beside each encoder")
 
 
@@ -168,8 +173,8 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _reproduce(args: argparse.Namespace) -> None:
-    from lerobot_murm.experiments.executors import make_executor
     from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+    from lerobot_murm.experiments.executors import make_executor
     from lerobot_murm.experiments.reproduce import reproduce
     from lerobot_murm.training_loop import TrainingInterrupted
 
@@ -336,8 +341,8 @@ def _exit_code(error: Exception) -> int | None:
     from lerobot_murm.checkpointing import CheckpointError
     from lerobot_murm.collection.collect import CollectionInterrupted
     from lerobot_murm.collection.durability import UnrepairableCollection
-    from lerobot_murm.collection.hub import HubUnavailable
     from lerobot_murm.locking import FolderInUse
+    from lerobot_murm.publishing import HubUnavailable
     from lerobot_murm.training_loop import TrainingInterrupted
     from lerobot_murm.vqvae.encoder_files import IncompleteEncoder
     from lerobot_murm.vqvae.frames import UnreadableDataset

@@ -12,7 +12,7 @@ from lerobot_murm.experiments.budget import budget_markdown, choose_budget
 from lerobot_murm.experiments.configuration_reproduce import BudgetSpec, load_reproduce_config
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run_command  # noqa: E402
+from commands import run_command
 
 MURM = Path(sys.executable).parent / "murm"
 

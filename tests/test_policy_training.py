@@ -15,8 +15,8 @@ import torch
 import yaml
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run_command  # noqa: E402
-from quiet import assert_quiet  # noqa: E402
+from commands import run_command
+from quiet import assert_quiet
 
 BIN = Path(sys.executable).parent
 CAMERAS = "[global,adjacent]"

@@ -17,9 +17,9 @@ from lerobot_murm.experiments.configuration_reproduce import load_reproduce_conf
 from lerobot_murm.policy.train import load_train_config
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run  # noqa: E402
-from quiet import assert_quiet  # noqa: E402
-from stored_run import stored_run  # noqa: E402
+from commands import run
+from quiet import assert_quiet
+from stored_run import stored_run
 
 REPO = Path(__file__).parents[1]
 MURM = Path(sys.executable).parent / "murm"

@@ -17,7 +17,6 @@ or a Ray cluster).
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
 import time
@@ -37,18 +36,25 @@ from lerobot_murm.collection.shards import collect_shard, is_complete, merge_sha
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import CAMERA_NAMES
 from lerobot_murm.env.murm_env import SCENE_VERSION
-from lerobot_murm.expert import default_noise_std
 from lerobot_murm.experiments.budget import budget_markdown, choose_budget
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, read_result, write_tables
+from lerobot_murm.expert import default_noise_std
 from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import cpu_description, resolve_precision
 from lerobot_murm.policy.train import TrainConfig, test_kept, train_seeds
 from lerobot_murm.vqvae import VQVAEConfig
-from lerobot_murm.vqvae.encoder_files import CONFIG_FILE, WEIGHTS_FILE, save_encoder_files
+from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE
+from lerobot_murm.vqvae.encoder_files import (
+    CONFIG_FILE,
+    METRICS_FILE,
+    WEIGHTS_FILE,
+    encoder_fingerprint as fingerprint,
+    save_encoder_files,
+)
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_distance import (
     QUANTILE_KEY,
@@ -101,9 +107,9 @@ def ensure_dataset(collect_config: CollectConfig) -> Path:
 
 def encoder_is_finished(out: Path, steps: int) -> bool:
     """A checkpoint trained to the end for `steps` (an interrupted one is trained again)."""
-    if not (out / "metrics.json").exists():
+    if not (out / METRICS_FILE).exists():
         return False
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = json.loads((out / METRICS_FILE).read_text())
     return not metrics["interrupted"] and metrics["steps"] == steps
 
 
@@ -124,7 +130,7 @@ def encoder_root(config: ReproduceConfig, task: str) -> Path:
 
 
 # the files beside an encoder's weights and config, `metrics.json` (what `encoder_is_finished` reads) copied last
-BESIDE_ENCODER = ("latent_distance.json", OBJECT_PIXELS_FILE, "metrics.json")
+BESIDE_ENCODER = (LATENT_DISTANCE_FILE, OBJECT_PIXELS_FILE, METRICS_FILE)
 
 
 def kept_encoder_dir(config: ReproduceConfig, root: Path) -> Path:
@@ -144,9 +150,9 @@ def copy_encoder(source: Path, target: Path) -> None:
 
 
 def encoder_fingerprint(folder: Path) -> str | None:
-    """The first 16 hex digits of the weights' sha256; None where there is no encoder."""
-    path = folder / "model.safetensors"
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.exists() else None
+    """What a run records of an encoder: the first 16 hex digits of its weights' sha256; None
+    where there is no encoder."""
+    return fingerprint(folder)[:16] if (folder / WEIGHTS_FILE).exists() else None
 
 
 def fetch_kept_encoders(config: ReproduceConfig, encoders: list[tuple[Path, str]]) -> None:
@@ -210,7 +216,7 @@ def ensure_encoder(config: ReproduceConfig, root: Path, camera: str) -> Path:
 
 def _has_statistics(encoder: Path) -> bool:
     """`murm encode`'s epsilon statistics beside the encoder, of the current kind."""
-    return (encoder / "latent_distance.json").exists() and QUANTILE_KEY in read_statistics(encoder)
+    return (encoder / LATENT_DISTANCE_FILE).exists() and QUANTILE_KEY in read_statistics(encoder)
 
 
 def run_dir(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> Path:

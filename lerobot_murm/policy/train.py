@@ -30,9 +30,9 @@ from pathlib import Path
 
 import draccus
 import torch
+from lerobot.configs import FeatureType
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.utils.feature_utils import dataset_to_policy_features
-from lerobot.configs import FeatureType
 
 from lerobot_murm.checkpointing import (
     COMPLETE_MARK,

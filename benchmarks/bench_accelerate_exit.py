@@ -31,20 +31,63 @@ PY_SPY = shutil.which("py-spy", path=f"{BIN}{os.pathsep}{os.environ.get('PATH', 
 
 
 def murm(*args) -> None:
-    subprocess.run([str(BIN / "murm"), *map(str, args)], check=True, env=os.environ | OFFLINE,
-                   stdout=subprocess.DEVNULL, timeout=900)
+    subprocess.run(
+        [str(BIN / "murm"), *map(str, args)],
+        check=True,
+        env=os.environ | OFFLINE,
+        stdout=subprocess.DEVNULL,
+        timeout=900,
+    )
 
 
 def build_latents(base: Path) -> tuple[Path, Path]:
     demos, encoders = base / "demos", base / "vqvae"
     if not (base / "latents").exists():
-        murm("collect", "--task", "place_in_box", "--root", demos, "--episodes", 6, "--workers", 1,
-             "--cameras", ",".join(CAMERAS), "--image-size", 16, "--noise-std", 0.1, "--overwrite")
+        murm(
+            "collect",
+            "--task",
+            "place_in_box",
+            "--root",
+            demos,
+            "--episodes",
+            6,
+            "--workers",
+            1,
+            "--cameras",
+            ",".join(CAMERAS),
+            "--image-size",
+            16,
+            "--noise-std",
+            0.1,
+            "--overwrite",
+        )
         for camera in CAMERAS:
-            murm("train-vqvae", "--dataset", demos, "--camera", camera, "--steps", 30, "--batch-size", 32,
-                 "--out", encoders / camera, "--device", "cpu")
-        murm("encode", "--dataset", demos, "--encoders", *(encoders / c for c in CAMERAS),
-             "--cache-dir", base / "cache", "--to-dataset", base / "latents")
+            murm(
+                "train-vqvae",
+                "--dataset",
+                demos,
+                "--camera",
+                camera,
+                "--steps",
+                30,
+                "--batch-size",
+                32,
+                "--out",
+                encoders / camera,
+                "--device",
+                "cpu",
+            )
+        murm(
+            "encode",
+            "--dataset",
+            demos,
+            "--encoders",
+            *(encoders / c for c in CAMERAS),
+            "--cache-dir",
+            base / "cache",
+            "--to-dataset",
+            base / "latents",
+        )
     return base / "latents", encoders
 
 
@@ -52,24 +95,56 @@ def launch(latents: Path, encoders: Path, out: Path, grace: float) -> tuple[bool
     """One two-rank training; (hung, seconds, py-spy dump of the hung processes)."""
     tag = new_tag()
     log = out.with_suffix(".log")
-    args = [BIN / "accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
-            "--mixed_precision", "no", "--dynamo_backend", "no", BIN / "lerobot-train", "--policy.type=murm",
-            "--policy.method=dropout", f"--policy.cameras=[{','.join(CAMERAS)}]", f"--policy.encoder_dir={encoders}",
-            "--dataset.repo_id=local/latents", f"--dataset.root={latents}", "--wandb.enable=false",
-            "--batch_size=16", "--num_workers=0", "--steps=3", "--save_freq=3", "--log_freq=1",
-            f"--output_dir={out}"]
+    args = [
+        BIN / "accelerate",
+        "launch",
+        "--multi_gpu",
+        "--num_processes",
+        "2",
+        "--num_machines",
+        "1",
+        "--mixed_precision",
+        "no",
+        "--dynamo_backend",
+        "no",
+        BIN / "lerobot-train",
+        "--policy.type=murm",
+        "--policy.method=dropout",
+        f"--policy.cameras=[{','.join(CAMERAS)}]",
+        f"--policy.encoder_dir={encoders}",
+        "--dataset.repo_id=local/latents",
+        f"--dataset.root={latents}",
+        "--wandb.enable=false",
+        "--batch_size=16",
+        "--num_workers=0",
+        "--steps=3",
+        "--save_freq=3",
+        "--log_freq=1",
+        f"--output_dir={out}",
+    ]
     start = time.monotonic()
     with open(log, "w") as sink:
-        process = subprocess.Popen([str(a) for a in args], env=os.environ | OFFLINE | {TAG_VARIABLE: tag},
-                                   stdout=sink, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(
+            [str(a) for a in args],
+            env=os.environ | OFFLINE | {TAG_VARIABLE: tag},
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+        )
         ended_at = None
         while process.poll() is None or tagged_processes(tag):
             if ended_at is None and "End of training" in log.read_text():
                 ended_at = time.monotonic()
             if (ended_at and time.monotonic() - ended_at > grace) or time.monotonic() - start > 600:
-                dump = "".join(subprocess.run([PY_SPY, "dump", "--native", "--pid", str(p.pid)], capture_output=True,
-                                              text=True).stdout for p in tagged_processes(tag)) \
-                    if PY_SPY else ""
+                dump = (
+                    "".join(
+                        subprocess.run(
+                            [PY_SPY, "dump", "--native", "--pid", str(p.pid)], capture_output=True, text=True
+                        ).stdout
+                        for p in tagged_processes(tag)
+                    )
+                    if PY_SPY
+                    else ""
+                )
                 kill_tagged(tag)
                 process.wait()
                 return True, time.monotonic() - start, dump

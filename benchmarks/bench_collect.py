@@ -35,6 +35,7 @@ def run(task: str, episodes: int, workers: int, root: Path) -> tuple[float, int]
 
 def time_donors(task: str, episodes: int, tmp: Path) -> None:
     """A 50 %-noisy collection simulated, then copied from its all-clean and all-noisy donors."""
+
     def config(name: str, fraction: float) -> CollectConfig:
         return CollectConfig(task=task, root=tmp / "datasets" / name, episodes=episodes, noisy_fraction=fraction)
 
@@ -48,8 +49,10 @@ def time_donors(task: str, episodes: int, tmp: Path) -> None:
         times[way] = time.perf_counter() - start
     print(f"\ntask {task}, {episodes} episodes, 50 % noisy, 2 workers")
     for way, elapsed in times.items():
-        print(f"{way:>10}: {elapsed:6.1f} s, {episodes / elapsed * 60:6.1f} episodes/min, "
-              f"1000 episodes {1000 * elapsed / episodes / 60:5.1f} min")
+        print(
+            f"{way:>10}: {elapsed:6.1f} s, {episodes / elapsed * 60:6.1f} episodes/min, "
+            f"1000 episodes {1000 * elapsed / episodes / 60:5.1f} min"
+        )
     print(f"copying is {times['simulated'] / times['copied']:.1f}x faster")
 
 

@@ -26,8 +26,9 @@ BASE_SEED = 7  # not the collections' seed 0: the benchmark's episodes are not t
 
 def outcome(job: tuple[str, float, float, int]) -> str:
     task, std, noisy_fraction, index = job
-    recipe = EpisodeRecipe(task=task, cameras=("global",), image_size=8, base_seed=BASE_SEED,
-                           noise_std=std, noisy_fraction=noisy_fraction)
+    recipe = EpisodeRecipe(
+        task=task, cameras=("global",), image_size=8, base_seed=BASE_SEED, noise_std=std, noisy_fraction=noisy_fraction
+    )
     episode = run_episode(recipe, index)
     if episode.succeeded:
         return "success"
@@ -56,15 +57,20 @@ def main() -> None:
                 print(f"| {task} | {' | '.join(cells)} |", flush=True)
             return
         print(f"{args.episodes} seeded episodes per cell (base seed {BASE_SEED})\n")
-        print("| task | noiseless | paper's std 0.1 | default std | default: success | never lifted "
-              "| lifted, not placed |")
+        print(
+            "| task | noiseless | paper's std 0.1 | default std | default: success | never lifted "
+            "| lifted, not placed |"
+        )
         print("|---|---:|---:|---:|---:|---:|---:|")
         for task in TASK_NAMES:
             clean = rates(task, 0.0, 0.0, args.episodes, pool)["success"]
             paper = rates(task, PAPER_NOISE_STD, 1.0, args.episodes, pool)["success"]
             default = rates(task, default_noise_std(task), 1.0, args.episodes, pool)
-            print(f"| {task} | {clean:.0%} | {paper:.0%} | {default_noise_std(task):g} | {default['success']:.0%} | "
-                  f"{default['never lifted']:.0%} | {default['lifted, not placed']:.0%} |", flush=True)
+            print(
+                f"| {task} | {clean:.0%} | {paper:.0%} | {default_noise_std(task):g} | {default['success']:.0%} | "
+                f"{default['never lifted']:.0%} | {default['lifted, not placed']:.0%} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

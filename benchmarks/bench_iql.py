@@ -110,8 +110,9 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize()
 
 
-def measure(method: str, n_cameras: int, widths: str, batch: int, device: torch.device, steps: int,
-            repeats: int) -> dict:
+def measure(
+    method: str, n_cameras: int, widths: str, batch: int, device: torch.device, steps: int, repeats: int
+) -> dict:
     """Per precision label: steps/s (sampling included), update ms on a fixed batch, sample ms."""
     cameras = CAMERAS[:n_cameras]
     policy = make_policy(method, cameras, device, width_per_camera=WIDTHS[widths]).train()
@@ -157,8 +158,13 @@ def measure(method: str, n_cameras: int, widths: str, batch: int, device: torch.
     result = {"method": method, "cameras": n_cameras, "widths": widths, "gflop": flops / 1e9, "hidden": hidden}
     for label in PRECISIONS:
         step_s, update_s = statistics.median(step_times[label]), statistics.median(update_times[label])
-        result[label] = {"steps_per_s": 1 / step_s, "update_ms": 1e3 * update_s, "sample_ms": 1e3 * (step_s - update_s),
-                         "gflops": flops / update_s / 1e9, "cpu_ms": 1e3 * statistics.median(cpu_times[label])}
+        result[label] = {
+            "steps_per_s": 1 / step_s,
+            "update_ms": 1e3 * update_s,
+            "sample_ms": 1e3 * (step_s - update_s),
+            "gflops": flops / update_s / 1e9,
+            "cpu_ms": 1e3 * statistics.median(cpu_times[label]),
+        }
     result["speedup"] = result["default"]["steps_per_s"] / result["fp32"]["steps_per_s"]
     result["cpu_speedup"] = result["fp32"]["cpu_ms"] / result["default"]["cpu_ms"]
     return result
@@ -175,10 +181,16 @@ def cpu_model() -> str:
 def write_random_latent_dataset(folder: Path, cameras: list[str], episodes: int, frames: int = 100) -> Path:
     """Random codes of `cameras` as a latent dataset in folder/latents, with random encoders in
     folder/vqvae (what lerobot-train's policy checks the codes against)."""
-    source = LeRobotDataset.create("local/source", fps=10, root=folder / "source", use_videos=False, features={
-        "action": {"dtype": "float32", "shape": (4,), "names": None},
-        "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
-    })
+    source = LeRobotDataset.create(
+        "local/source",
+        fps=10,
+        root=folder / "source",
+        use_videos=False,
+        features={
+            "action": {"dtype": "float32", "shape": (4,), "names": None},
+            "next.reward": {"dtype": "float32", "shape": (1,), "names": None},
+        },
+    )
     rng = np.random.default_rng(0)
     for _ in range(episodes):
         for action in rng.uniform(-1, 1, (frames, 4)).astype(np.float32):
@@ -216,8 +228,16 @@ def fast_s_per_step(policy: MurmPolicy, replay: LatentReplay, batch: int, steps:
     return (clock() - start) / steps
 
 
-def lerobot_train_s(latents: Path, encoder_dir: Path, cameras: list[str], batch: int, steps: int,
-                    num_workers: int, threads: int | None, device: torch.device) -> float:
+def lerobot_train_s(
+    latents: Path,
+    encoder_dir: Path,
+    cameras: list[str],
+    batch: int,
+    steps: int,
+    num_workers: int,
+    threads: int | None,
+    device: torch.device,
+) -> float:
     """Seconds of a whole stock `lerobot-train --policy.type=murm` run on the latent dataset: on
     the CPU its CPU time, data-loader workers included; on a GPU its wall time. `threads`: its
     torch threads (OMP_NUM_THREADS), as this process's. Started as `python -m` (the console
@@ -225,14 +245,30 @@ def lerobot_train_s(latents: Path, encoder_dir: Path, cameras: list[str], batch:
     env = {**os.environ, "HF_HUB_OFFLINE": "1", **({"OMP_NUM_THREADS": str(threads)} if threads else {})}
     before, start = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
     with tempfile.TemporaryDirectory() as out:
-        subprocess.run([
-            sys.executable, "-m", "lerobot.scripts.lerobot_train", "--policy.type=murm", "--policy.method=separated_q",
-            f"--policy.cameras=[{','.join(cameras)}]", f"--policy.encoder_dir={encoder_dir}",
-            "--policy.epsilon=[2.0,2.0]",
-            f"--policy.device={device.type}", "--dataset.repo_id=local/latents", f"--dataset.root={latents}",
-            f"--batch_size={batch}", f"--steps={steps}", "--save_checkpoint=false", f"--num_workers={num_workers}",
-            f"--output_dir={out}/run", "--wandb.enable=false",
-        ], capture_output=True, check=True, env=env)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "lerobot.scripts.lerobot_train",
+                "--policy.type=murm",
+                "--policy.method=separated_q",
+                f"--policy.cameras=[{','.join(cameras)}]",
+                f"--policy.encoder_dir={encoder_dir}",
+                "--policy.epsilon=[2.0,2.0]",
+                f"--policy.device={device.type}",
+                "--dataset.repo_id=local/latents",
+                f"--dataset.root={latents}",
+                f"--batch_size={batch}",
+                f"--steps={steps}",
+                "--save_checkpoint=false",
+                f"--num_workers={num_workers}",
+                f"--output_dir={out}/run",
+                "--wandb.enable=false",
+            ],
+            capture_output=True,
+            check=True,
+            env=env,
+        )
     if device.type != "cpu":
         return time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -267,18 +303,26 @@ def row_costs(episodes: int = 100, rows: int = 2000) -> None:
             return 1e3 * (time.process_time() - start) / rows
 
         print("| what is read | CPU ms per row |\n|---|---:|")
-        for label, read in (("`LeRobotDataset.__getitem__`", dataset.__getitem__),
-                            ("the row through `datasets` with LeRobot's torch transform, codes packed",
-                             table.__getitem__),
-                            ("the same, codes as 144 int16 an image (the layout before)", unpacked.__getitem__),
-                            ("the same, packed, without the goal-code columns", without_goals.__getitem__),
-                            ("the same without any code column", without_codes.__getitem__),
-                            ("the row as Arrow (no conversion)", table.with_format("arrow").__getitem__)):
+        for label, read in (
+            ("`LeRobotDataset.__getitem__`", dataset.__getitem__),
+            ("the row through `datasets` with LeRobot's torch transform, codes packed", table.__getitem__),
+            ("the same, codes as 144 int16 an image (the layout before)", unpacked.__getitem__),
+            ("the same, packed, without the goal-code columns", without_goals.__getitem__),
+            ("the same without any code column", without_codes.__getitem__),
+            ("the row as Arrow (no conversion)", table.with_format("arrow").__getitem__),
+        ):
             print(f"| {label} | {ms_per_row(read):.3f} |")
 
 
-def compare_trainers(batch: int, num_workers: int, repeats: int, threads: int | None, steps: int = 150,
-                     episodes: int = 1000, device: torch.device = torch.device("cpu")) -> None:
+def compare_trainers(
+    batch: int,
+    num_workers: int,
+    repeats: int,
+    threads: int | None,
+    steps: int = 150,
+    episodes: int = 1000,
+    device: torch.device = torch.device("cpu"),
+) -> None:
     """Time per update of murm train and of lerobot-train, alternately, on one latent dataset
     (separated Q, two cameras). lerobot-train's per-step time is the difference between a run of
     `steps` + 10 and one of 10 updates, so its start (imports, loading the dataset) cancels out.
@@ -299,12 +343,17 @@ def compare_trainers(batch: int, num_workers: int, repeats: int, threads: int | 
             short = lerobot_train_s(latents, encoder_dir, cameras, batch, 10, num_workers, threads, device)
             long = lerobot_train_s(latents, encoder_dir, cameras, batch, steps + 10, num_workers, threads, device)
             slow.append((long - short) / steps)
-            print(f"  {unit} per update: murm train {1e3 * fast[-1]:.1f}, lerobot-train {1e3 * slow[-1]:.1f} "
-                  f"(its start: {short:.1f} s)", flush=True)
+            print(
+                f"  {unit} per update: murm train {1e3 * fast[-1]:.1f}, lerobot-train {1e3 * slow[-1]:.1f} "
+                f"(its start: {short:.1f} s)",
+                flush=True,
+            )
     f, s = statistics.median(fast), statistics.median(slow)
-    print(f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, device {device}, torch threads "
-          f"{torch.get_num_threads()}, lerobot-train --num_workers={num_workers}: "
-          f"{unit} per update: murm train {1e3 * f:.1f}, lerobot-train {1e3 * s:.1f}")
+    print(
+        f"\nseparated_q, 2 cameras, batch {batch}, {episodes * 100} frames, device {device}, torch threads "
+        f"{torch.get_num_threads()}, lerobot-train --num_workers={num_workers}: "
+        f"{unit} per update: murm train {1e3 * f:.1f}, lerobot-train {1e3 * s:.1f}"
+    )
     print(f"lerobot-train / murm train: {f / s:.2f}")
 
 
@@ -337,15 +386,26 @@ def seed_setup(method: str, n_cameras: int, seeds: int, batch: int, device: torc
     def updates(updater, generators) -> Updates:
         if graph:
             make_capturable(updater.optimizer)
-        return Updates(lambda: updater.step(replay.sample_stacked(batch, generators)),
-                       CudaGraph(generators) if graph else None, device=device)
+        return Updates(
+            lambda: updater.step(replay.sample_stacked(batch, generators)),
+            CudaGraph(generators) if graph else None,
+            device=device,
+        )
 
     generators = [torch.Generator(device=device).manual_seed(s) for s in range(seeds + 1)]
     return replay, lone, stack, updates(lone, generators[:1]), updates(stack, generators[1:]), generators
 
 
-def measure_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: torch.device, steps: int,
-                  repeats: int, graph: bool = False) -> dict:
+def measure_seeds(
+    method: str,
+    n_cameras: int,
+    seeds: int,
+    batch: int,
+    device: torch.device,
+    steps: int,
+    repeats: int,
+    graph: bool = False,
+) -> dict:
     """Seed-updates/s of one seed alone and of `seeds` stacked, in alternating blocks."""
     _, _, _, lone, stacked, _ = seed_setup(method, n_cameras, seeds, batch, device, graph)
     wall = {"lone": [], "stack": []}
@@ -361,9 +421,14 @@ def measure_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: t
                 wall[label].append((time.perf_counter() - start) / steps)
                 cpu[label].append((time.process_time() - cpu_start) / steps)
     lone_s, stack_s = statistics.median(wall["lone"]), statistics.median(wall["stack"])
-    return {"method": method, "cameras": n_cameras, "lone": 1 / lone_s, "stack": seeds / stack_s,
-            "ratio": seeds * lone_s / stack_s,
-            "cpu_ratio": seeds * statistics.median(cpu["lone"]) / statistics.median(cpu["stack"])}
+    return {
+        "method": method,
+        "cameras": n_cameras,
+        "lone": 1 / lone_s,
+        "stack": seeds / stack_s,
+        "ratio": seeds * lone_s / stack_s,
+        "cpu_ratio": seeds * statistics.median(cpu["lone"]) / statistics.median(cpu["stack"]),
+    }
 
 
 def profile_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: torch.device, repeats: int = 15) -> None:
@@ -407,8 +472,10 @@ def profile_seeds(method: str, n_cameras: int, seeds: int, batch: int, device: t
         parts["whole update"] = ms(lambda: updater.step(replay.sample_stacked(batch, gens)))
         return parts
 
-    rows = [(label, len(gens), parts_of(updater, gens))
-            for label, updater, gens in (("alone", lone, generators[:1]), (f"{seeds} stacked", stack, generators[1:]))]
+    rows = [
+        (label, len(gens), parts_of(updater, gens))
+        for label, updater, gens in (("alone", lone, generators[:1]), (f"{seeds} stacked", stack, generators[1:]))
+    ]
     print(f"\n{method}, {n_cameras} camera(s): CPU ms per seed (medians of {repeats})\n")
     print("| part | " + " | ".join(label for label, *_ in rows) + " | stacked / alone |")
     print("|---|" + "---:|" * (len(rows) + 1))
@@ -430,14 +497,18 @@ def eval_share(seeds: int, device: torch.device, repeats: int = 1) -> None:
         policies = seed_policies("separated_q", cameras, device, k)
         with Evaluator("place_in_box", cameras, 48, spec.eval_envs, policies=k) as evaluator:
             evaluator.evaluate(policies, evaluation_seeds(spec.eval_envs, 0))  # the workers' first episodes
-            seconds = min(evaluator.evaluate(policies, evaluation_seeds(spec.eval_episodes, 200_000))[0].seconds
-                          for _ in range(repeats))
+            seconds = min(
+                evaluator.evaluate(policies, evaluation_seeds(spec.eval_episodes, 200_000))[0].seconds
+                for _ in range(repeats)
+            )
         evaluations = spec.steps // spec.eval_every - 1  # the last one is the final evaluation
         eval_s = seconds * (evaluations + 2 * spec.final_eval_episodes / spec.eval_episodes)
         train_s = spec.steps * k / seeds_per_s
-        print(f"{k} seed(s): {spec.eval_episodes} episodes each in {seconds:.1f} s; a cell of {spec.steps} updates: "
-              f"training {train_s / 60:.0f} min, evaluating {eval_s / 60:.0f} min: "
-              f"{100 * eval_s / (eval_s + train_s):.0f} % of its wall time evaluating")
+        print(
+            f"{k} seed(s): {spec.eval_episodes} episodes each in {seconds:.1f} s; a cell of {spec.steps} updates: "
+            f"training {train_s / 60:.0f} min, evaluating {eval_s / 60:.0f} min: "
+            f"{100 * eval_s / (eval_s + train_s):.0f} % of its wall time evaluating"
+        )
 
 
 def gpu_seeds(batch: int, device: torch.device, steps: int, repeats: int) -> None:
@@ -450,17 +521,22 @@ def gpu_seeds(batch: int, device: torch.device, steps: int, repeats: int) -> Non
         print(f"| {seeds} | {'yes' if graph else 'no'} | {r['lone']:.0f} | {r['stack']:.0f} |", flush=True)
 
 
-def seeds_together(seeds: int, batch: int, device: torch.device, steps: int, repeats: int, profile: bool,
-                   share: bool) -> None:
+def seeds_together(
+    seeds: int, batch: int, device: torch.device, steps: int, repeats: int, profile: bool, share: bool
+) -> None:
     results = [measure_seeds(m, n, seeds, batch, device, steps, repeats) for m, n in SEED_CASES]
-    print(f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
-          f"batch {batch}, default precision {str(resolve_precision('auto', device)).removeprefix('torch.')}, "
-          f"load average {os.getloadavg()[0]:.1f} at the end\n")
+    print(
+        f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
+        f"batch {batch}, default precision {str(resolve_precision('auto', device)).removeprefix('torch.')}, "
+        f"load average {os.getloadavg()[0]:.1f} at the end\n"
+    )
     print("| method | cameras | one seed alone, updates/s | seeds stacked, seed-updates/s | ratio | CPU-time ratio |")
     print("|---|---:|---:|---:|---:|---:|")
     for r in results:
-        print(f"| {r['method']} | {r['cameras']} | {r['lone']:.1f} | {r['stack']:.1f} | {r['ratio']:.2f} | "
-              f"{r['cpu_ratio']:.2f} |")
+        print(
+            f"| {r['method']} | {r['cameras']} | {r['lone']:.1f} | {r['stack']:.1f} | {r['ratio']:.2f} | "
+            f"{r['cpu_ratio']:.2f} |"
+        )
     print(f"\nseeds together, {seeds} seeds: {min(r['ratio'] for r in results):.2f}")
     if profile:
         for m, n in SEED_CASES:
@@ -476,17 +552,27 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=256)
     parser.add_argument("--steps", type=int, default=30)
     parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--widths", choices=[*WIDTHS, "both"], default="both",
-                        help="per_camera: 128 units per camera (the default); fixed: 128 units everywhere")
-    parser.add_argument("--cases", nargs="*", default=None, metavar="METHOD:CAMERAS",
-                        help="e.g. separated_q:2 (default: all six)")
+    parser.add_argument(
+        "--widths",
+        choices=[*WIDTHS, "both"],
+        default="both",
+        help="per_camera: 128 units per camera (the default); fixed: 128 units everywhere",
+    )
+    parser.add_argument(
+        "--cases", nargs="*", default=None, metavar="METHOD:CAMERAS", help="e.g. separated_q:2 (default: all six)"
+    )
     parser.add_argument("--lerobot-train", action="store_true", help="also compare with lerobot-train")
     parser.add_argument("--lerobot-train-only", action="store_true", help="only compare with lerobot-train")
     parser.add_argument("--num-workers", type=int, default=2, help="lerobot-train's --num_workers")
     parser.add_argument("--episodes", type=int, default=1000, help="episodes of 100 frames in the latent dataset")
     parser.add_argument("--row-costs", action="store_true", help="only the per-row cost of LeRobot's loader")
-    parser.add_argument("--seeds-together", type=int, default=0, metavar="K",
-                        help="only K seeds stacked against one alone (single view, separated Q with two cameras)")
+    parser.add_argument(
+        "--seeds-together",
+        type=int,
+        default=0,
+        metavar="K",
+        help="only K seeds stacked against one alone (single view, separated Q with two cameras)",
+    )
     parser.add_argument("--profile", action="store_true", help="with --seeds-together: where each update goes")
     parser.add_argument("--eval-share", action="store_true", help="with --seeds-together: the share spent evaluating")
     parser.add_argument("--gpu-seeds", action="store_true", help="only the CUDA-graph and 1/3/10/30-seed table (GPU)")
@@ -498,54 +584,84 @@ def main() -> None:
     if args.gpu_seeds:
         return gpu_seeds(args.batch_size, torch.device(args.device), args.steps, args.repeats)
     if args.seeds_together:
-        return seeds_together(args.seeds_together, args.batch_size, torch.device(args.device), args.steps,
-                              args.repeats, args.profile, args.eval_share)
+        return seeds_together(
+            args.seeds_together,
+            args.batch_size,
+            torch.device(args.device),
+            args.steps,
+            args.repeats,
+            args.profile,
+            args.eval_share,
+        )
     if args.lerobot_train_only:
-        return compare_trainers(args.batch_size, args.num_workers, args.repeats, args.threads, args.steps,
-                                args.episodes, torch.device(args.device))
+        return compare_trainers(
+            args.batch_size,
+            args.num_workers,
+            args.repeats,
+            args.threads,
+            args.steps,
+            args.episodes,
+            torch.device(args.device),
+        )
     device = torch.device(args.device)
     cases = [(m, int(n)) for m, n in (c.split(":") for c in args.cases)] if args.cases else CASES
     widths = list(WIDTHS) if args.widths == "both" else [args.widths]
     default_dtype = resolve_precision("auto", device)
     dtypes = {"fp32": torch.float32, "default": default_dtype}
     peak_before = {label: matmul_gflops(device, dtype) for label, dtype in dtypes.items()}
-    results = [measure(m, n, w, args.batch_size, device, args.steps, args.repeats)
-               for w in widths for m, n in cases
-               if not (w == "fixed" and n == 1 and len(widths) > 1)]  # the same at 1 camera
+    results = [
+        measure(m, n, w, args.batch_size, device, args.steps, args.repeats)
+        for w in widths
+        for m, n in cases
+        if not (w == "fixed" and n == 1 and len(widths) > 1)
+    ]  # the same at 1 camera
     # the better of two measurements: the stricter ratio
     peak = {label: max(peak_before[label], matmul_gflops(device, dtype)) for label, dtype in dtypes.items()}
-    print(f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
-          f"batch {args.batch_size}, default precision {str(default_dtype).removeprefix('torch.')}")
-    print(f"dense 2048^3 matmul: fp32 {peak['fp32']:.0f} GFLOP/s, default {peak['default']:.0f} GFLOP/s "
-          f"(before the runs {peak_before['fp32']:.0f} / {peak_before['default']:.0f})\n")
-    print("| method | cameras | hidden (Q/V/policy) | fp32 steps/s | default steps/s | speedup | "
-          "update ms fp32 / default | sample ms | GFLOP/update | % of fp32 peak, fp32 | % of default peak, default | "
-          "CPU ms/step fp32 / default | CPU-time speedup |")
+    print(
+        f"CPU: {cpu_model()}; device {device}, torch {torch.__version__}, threads {torch.get_num_threads()}, "
+        f"batch {args.batch_size}, default precision {str(default_dtype).removeprefix('torch.')}"
+    )
+    print(
+        f"dense 2048^3 matmul: fp32 {peak['fp32']:.0f} GFLOP/s, default {peak['default']:.0f} GFLOP/s "
+        f"(before the runs {peak_before['fp32']:.0f} / {peak_before['default']:.0f})\n"
+    )
+    print(
+        "| method | cameras | hidden (Q/V/policy) | fp32 steps/s | default steps/s | speedup | "
+        "update ms fp32 / default | sample ms | GFLOP/update | % of fp32 peak, fp32 | % of default peak, default | "
+        "CPU ms/step fp32 / default | CPU-time speedup |"
+    )
     print("|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in results:
         f, d = r["fp32"], r["default"]
-        print(f"| {r['method']} | {r['cameras']} | {r['hidden']} | "
-              f"{f['steps_per_s']:.1f} | {d['steps_per_s']:.1f} | {r['speedup']:.2f}x | "
-              f"{f['update_ms']:.1f} / {d['update_ms']:.1f} | {d['sample_ms']:.1f} | {r['gflop']:.2f} | "
-              f"{100 * f['gflops'] / peak['fp32']:.0f} % | {100 * d['gflops'] / peak['default']:.0f} % | "
-              f"{f['cpu_ms']:.1f} / {d['cpu_ms']:.1f} | {r['cpu_speedup']:.2f}x |")
+        print(
+            f"| {r['method']} | {r['cameras']} | {r['hidden']} | "
+            f"{f['steps_per_s']:.1f} | {d['steps_per_s']:.1f} | {r['speedup']:.2f}x | "
+            f"{f['update_ms']:.1f} / {d['update_ms']:.1f} | {d['sample_ms']:.1f} | {r['gflop']:.2f} | "
+            f"{100 * f['gflops'] / peak['fp32']:.0f} % | {100 * d['gflops'] / peak['default']:.0f} % | "
+            f"{f['cpu_ms']:.1f} / {d['cpu_ms']:.1f} | {r['cpu_speedup']:.2f}x |"
+        )
     two = [r for r in results if r["cameras"] == 2]
     if two:  # the smallest over the two-camera cases: the claim holds for every method and width
         wall, cpu = [r["speedup"] for r in two], [r["cpu_speedup"] for r in two]
-        print(f"\nspeedup over fp32 eager, two cameras: {min(wall):.2f} (smallest of {len(two)} cases; "
-              f"median {statistics.median(wall):.2f}; in CPU time: smallest {min(cpu):.2f}, median "
-              f"{statistics.median(cpu):.2f})")
+        print(
+            f"\nspeedup over fp32 eager, two cameras: {min(wall):.2f} (smallest of {len(two)} cases; "
+            f"median {statistics.median(wall):.2f}; in CPU time: smallest {min(cpu):.2f}, median "
+            f"{statistics.median(cpu):.2f})"
+        )
     by_case = {(r["method"], r["cameras"]): r for r in results if r["widths"] == widths[0]}
     if ("single", 1) in by_case:
         single = by_case[("single", 1)]["default"]["steps_per_s"]
-        print(f"\ntime per step relative to single-view, {widths[0]} widths, default precision "
-              "(paper Table 5: dropout 1.05, separated Q 1.55):")
+        print(
+            f"\ntime per step relative to single-view, {widths[0]} widths, default precision "
+            "(paper Table 5: dropout 1.05, separated Q 1.55):"
+        )
         for (method, n), r in by_case.items():
             if n > 1:
                 print(f"  {method} with {n} cameras: {single / r['default']['steps_per_s']:.2f}")
     if args.lerobot_train:
-        compare_trainers(args.batch_size, args.num_workers, args.repeats, args.threads, episodes=args.episodes,
-                         device=device)
+        compare_trainers(
+            args.batch_size, args.num_workers, args.repeats, args.threads, episodes=args.episodes, device=device
+        )
 
 
 if __name__ == "__main__":

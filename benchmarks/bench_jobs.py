@@ -52,18 +52,30 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=2, help="training runs in the slice (seeds 0, 1, ...)")
     parser.add_argument("--steps", type=int, default=1000, help="updates per run")
     parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--final-eval-episodes", type=int, default=2,
-                        help="test episodes per run (a grid's runs evaluate 100; the simulator is single-threaded)")
+    parser.add_argument(
+        "--final-eval-episodes",
+        type=int,
+        default=2,
+        help="test episodes per run (a grid's runs evaluate 100; the simulator is single-threaded)",
+    )
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp:
-        config = load_reproduce_config(REPO / "configs/reproduce/smoke.yaml", [
-            f"--work_dir={tmp}/work", f"--results_dir={tmp}/results", f"--seeds={list(range(args.runs))}",
-            "--collection.episodes=10", "--vqvae.steps=50", f"--train.steps={args.steps}",
-            f"--train.eval_every={args.steps}", f"--train.log_every={args.steps // 4}",
-            f"--train.final_eval_episodes={args.final_eval_episodes}",
-            "--train.eval_envs=1",
-        ])
+        config = load_reproduce_config(
+            REPO / "configs/reproduce/smoke.yaml",
+            [
+                f"--work_dir={tmp}/work",
+                f"--results_dir={tmp}/results",
+                f"--seeds={list(range(args.runs))}",
+                "--collection.episodes=10",
+                "--vqvae.steps=50",
+                f"--train.steps={args.steps}",
+                f"--train.eval_every={args.steps}",
+                f"--train.log_every={args.steps // 4}",
+                f"--train.final_eval_episodes={args.final_eval_episodes}",
+                "--train.eval_envs=1",
+            ],
+        )
         config.cells = [cell for cell in config.cells if cell.method == "single"]
         config.cells[0].eval_mask_p = [0.0]
         sitting(config, 1)  # untimed: collects the dataset and trains the encoder (and warms the caches)
@@ -76,14 +88,18 @@ def main() -> None:
                 rates[jobs] += run_rates
                 print(f"jobs {jobs}: {wall:.1f} s, updates/s per run {run_rates}")
     model = subprocess.run("lscpu | grep 'Model name'", shell=True, capture_output=True, text=True).stdout.strip()
-    print(f"\n{model}\n{args.runs} runs of {args.steps} updates and {args.final_eval_episodes} test episodes, "
-          f"single view, batch 256; {args.repeats} sittings each")
+    print(
+        f"\n{model}\n{args.runs} runs of {args.steps} updates and {args.final_eval_episodes} test episodes, "
+        f"single view, batch 256; {args.repeats} sittings each"
+    )
     print("| jobs | torch threads per run | grid wall time (median) | all sittings | updates/s per run (median) |")
     print("|---:|---:|---:|---|---:|")
     for jobs, seconds in times.items():
         threads = threads_per_job(jobs) if jobs > 1 else "all"
-        print(f"| {jobs} | {threads} | {statistics.median(seconds):.1f} s | {', '.join(f'{s:.1f}' for s in seconds)} "
-              f"| {statistics.median(rates[jobs]):.1f} |")
+        print(
+            f"| {jobs} | {threads} | {statistics.median(seconds):.1f} s | {', '.join(f'{s:.1f}' for s in seconds)} "
+            f"| {statistics.median(rates[jobs]):.1f} |"
+        )
     print(f"--jobs {args.jobs} over --jobs 1: {statistics.median(times[1]) / statistics.median(times[args.jobs]):.2f}x")
 
 

@@ -77,9 +77,21 @@ def main() -> None:
     print("|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory() as tmp:
         root, log = args.keep or Path(tmp) / "ds", Path(tmp) / "stderr.txt"
-        command = [str(MURM), "collect", "--task", args.task, "--root", str(root), *recipe,
-                   "--episodes", str(args.episodes), "--workers", str(args.workers),
-                   "--flush-every", str(args.flush_every)]
+        command = [
+            str(MURM),
+            "collect",
+            "--task",
+            args.task,
+            "--root",
+            str(root),
+            *recipe,
+            "--episodes",
+            str(args.episodes),
+            "--workers",
+            str(args.workers),
+            "--flush-every",
+            str(args.flush_every),
+        ]
         worst = 0
         for kill in range(1, args.kills + 1):
             kept_before = read_summary(root)["episodes"] if (root / SUMMARY_FILE).exists() else 0
@@ -87,8 +99,9 @@ def main() -> None:
             if args.spread:  # near kill / (kills + 1) of the way through
                 target = max(target, kill * args.episodes // (args.kills + 1) + rng.randint(0, args.flush_every - 1))
             with log.open("w") as stderr:
-                process = subprocess.Popen(command + (["--resume"] if kill > 1 else []), stdout=subprocess.DEVNULL,
-                                           stderr=stderr)
+                process = subprocess.Popen(
+                    command + (["--resume"] if kill > 1 else []), stdout=subprocess.DEVNULL, stderr=stderr
+                )
             while finished(log) < target:
                 assert process.poll() is None, log.read_text()[-2000:]
                 time.sleep(0.05)
@@ -112,8 +125,10 @@ def main() -> None:
         done = subprocess.run(command + ["--resume"], capture_output=True, text=True)
         assert done.returncode == 0, done.stderr[-2000:]
         summary = json.loads((root / SUMMARY_FILE).read_text())
-    print(f"\nworst loss {worst} episodes with --flush-every {args.flush_every}; resumed to {summary['episodes']} "
-          f"episodes; expert success {summary['success_rate']:.1%}")
+    print(
+        f"\nworst loss {worst} episodes with --flush-every {args.flush_every}; resumed to {summary['episodes']} "
+        f"episodes; expert success {summary['success_rate']:.1%}"
+    )
 
 
 if __name__ == "__main__":

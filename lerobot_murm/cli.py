@@ -122,7 +122,8 @@ def _encode_locked(args: argparse.Namespace, repo_id: str, root: Path | None, ca
         cache = build_latent_cache(repo_id, root, Path(encoder), cache_dir, device=args.device)
         stats.append(distance_statistics(cache, successes))
         save_beside_encoder(stats[-1], Path(encoder))
-        print(f"{cache.camera}: {len(cache.indices)} frames cached; suggested epsilon {stats[-1]['suggested_epsilon']:.2f}")
+        suggested = stats[-1]["suggested_epsilon"]
+        print(f"{cache.camera}: {len(cache.indices)} frames cached; suggested epsilon {suggested:.2f}")
         caches.append(cache)
     public = [public_statistics(s) for s in stats]
     write_atomic(cache_dir / "epsilon.json", (json.dumps(public, indent=2) + "\n").encode())
@@ -140,11 +141,16 @@ def _write_latents(args: argparse.Namespace, repo_id: str, root: Path | None, ca
 
     out = Path(args.to_dataset)
     latent_repo_id = args.repo_id or f"local/{out.name}"
-    command = shlex.join(["murm", "encode", "--dataset", args.dataset, "--encoders", *args.encoders, "--to-dataset", str(out)])
-    dataset = write_latent_dataset(open_dataset(repo_id, root), caches, [Path(e) for e in args.encoders], out,
-                                   latent_repo_id, command)
-    print(f"latent dataset {out}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames, "
-          f"codes of {', '.join(c.camera for c in caches)}")
+    command = shlex.join(
+        ["murm", "encode", "--dataset", args.dataset, "--encoders", *args.encoders, "--to-dataset", str(out)]
+    )
+    dataset = write_latent_dataset(
+        open_dataset(repo_id, root), caches, [Path(e) for e in args.encoders], out, latent_repo_id, command
+    )
+    print(
+        f"latent dataset {out}: {dataset.meta.total_episodes} episodes, {len(dataset)} frames, "
+        f"codes of {', '.join(c.camera for c in caches)}"
+    )
     if args.push_to_hub:
         _push(argparse.Namespace(root=out, repo_id=latent_repo_id, private=args.private))
 
@@ -167,8 +173,11 @@ def _train(args: argparse.Namespace) -> None:
 
     for summary in train(load_train_config(args.config, args.overrides)):
         for row in summary["final"]:
-            print(f"{summary['task']} {summary['method']} {'+'.join(summary['cameras'])} seed {summary['seed']} "
-                  f"masking {row['mask_p']:.0%}: success {100 * row['success_rate']:.1f} % over {row['episodes']} episodes")
+            print(
+                f"{summary['task']} {summary['method']} {'+'.join(summary['cameras'])} seed {summary['seed']} "
+                f"masking {row['mask_p']:.0%}: success {100 * row['success_rate']:.1f} % "
+                f"over {row['episodes']} episodes"
+            )
         print(f"checkpoint: {summary['checkpoint']}")
 
 
@@ -179,8 +188,9 @@ def _reproduce(args: argparse.Namespace) -> None:
     from lerobot_murm.training_loop import TrainingInterrupted
 
     config = load_reproduce_config(args.config, args.overrides)
-    executor = make_executor(args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task,
-                             args.shard_episodes)  # a bad flag: ValueError, one line
+    executor = make_executor(
+        args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task, args.shard_episodes
+    )  # a bad flag: ValueError, one line
     try:
         out = reproduce(config, executor)
     except TrainingInterrupted as stop:
@@ -238,14 +248,22 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--image-size", type=int, default=48)
     col.add_argument("--seed", type=int, default=0, help="base seed: episode i depends on it and i alone")
     col.add_argument("--noise-k", type=float, default=1.0, help="expert noise k in a* + k N(0, std) (default: 1)")
-    col.add_argument("--noise-std", type=float, default=None,
-                     help="noise std (default: the task's calibrated std, about 75%% expert success as in the paper; "
-                          "0.1 is the paper's std, --noisy-fraction 0 the clean expert)")
+    col.add_argument(
+        "--noise-std",
+        type=float,
+        default=None,
+        help="noise std (default: the task's calibrated std, about 75%% expert success as in the paper; "
+        "0.1 is the paper's std, --noisy-fraction 0 the clean expert)",
+    )
     col.add_argument("--noisy-fraction", type=float, default=1.0, help="share of noisy episodes (default: 1)")
     col.add_argument("--resume", action="store_true", help="carry on an interrupted or shorter collection")
     col.add_argument("--overwrite", action="store_true", help="delete an existing murm dataset at --root first")
-    col.add_argument("--flush-every", type=int, default=10,
-                     help="episodes between flushes to disk: the most a hard stop loses (default: %(default)s)")
+    col.add_argument(
+        "--flush-every",
+        type=int,
+        default=10,
+        help="episodes between flushes to disk: the most a hard stop loses (default: %(default)s)",
+    )
     col.add_argument("--push-to-hub", action="store_true", help="push to --repo-id when done")
     col.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
     col.set_defaults(func=_collect)
@@ -276,8 +294,12 @@ def build_parser() -> argparse.ArgumentParser:
     enc.add_argument("--encoders", nargs="+", required=True, help="VQ-VAE checkpoint folders, one per camera")
     enc.add_argument("--cache-dir", default="outputs/latent_cache")
     enc.add_argument("--device", default="cpu")
-    enc.add_argument("--to-dataset", default=None, metavar="DIR",
-                     help="also write a LeRobotDataset of the cameras' codes, without images, to this new folder")
+    enc.add_argument(
+        "--to-dataset",
+        default=None,
+        metavar="DIR",
+        help="also write a LeRobotDataset of the cameras' codes, without images, to this new folder",
+    )
     enc.add_argument("--repo-id", default=None, help="with --to-dataset: its Hub id (default: local/DIR's name)")
     enc.add_argument("--push-to-hub", action="store_true", help="with --to-dataset: push it to --repo-id")
     enc.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
@@ -297,10 +319,11 @@ def build_parser() -> argparse.ArgumentParser:
         "train",
         help="train a MURM policy fast from the latent cache (resumes when rerun)",
         epilog="Further --key=value arguments override the YAML, e.g. --steps=1000 --policy.method=dropout; "
-               "--seeds=[0,1,2] trains three seeds side by side (in output_dir/seed0, ...)",
+        "--seeds=[0,1,2] trains three seeds side by side (in output_dir/seed0, ...)",
     )
-    tr.add_argument("--config", required=True, type=_config_file,
-                    help="a YAML file, e.g. configs/place_in_box/separated_q.yaml")
+    tr.add_argument(
+        "--config", required=True, type=_config_file, help="a YAML file, e.g. configs/place_in_box/separated_q.yaml"
+    )
     tr.set_defaults(accepts_overrides=True)  # any further --key=value overrides the YAML (draccus)
 
     rep = commands.add_parser(
@@ -309,22 +332,39 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Further --key=value arguments override the YAML, e.g. --seeds=[0] --train.steps=1000",
     )
     rep.add_argument("--config", required=True, type=_config_file, help="e.g. configs/reproduce/smoke.yaml")
-    rep.add_argument("--executor", choices=["local", "ray"], default="local",
-                     help="local (default) or ray: every stage a Ray task (needs the [ray] extra and a shared work_dir)")
-    rep.add_argument("--jobs", type=int, default=1,
-                     help="local executor: runs at once, each with cores/JOBS torch threads (default: %(default)s)")
-    rep.add_argument("--address", default=None, help="ray: the cluster's address (default: RAY_ADDRESS, else a new local one)")
-    rep.add_argument("--cpus-per-task", type=int, default=1, help="ray: CPUs (torch threads) per encoder or training task")
-    rep.add_argument("--gpus-per-task", type=float, default=0.0, help="ray: GPUs per encoder or training task (e.g. 1 or 0.25)")
-    rep.add_argument("--shard-episodes", type=int, default=100, help="ray: episodes per collection task (default: %(default)s)")
+    rep.add_argument(
+        "--executor",
+        choices=["local", "ray"],
+        default="local",
+        help="local (default) or ray: every stage a Ray task (needs the [ray] extra and a shared work_dir)",
+    )
+    rep.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="local executor: runs at once, each with cores/JOBS torch threads (default: %(default)s)",
+    )
+    rep.add_argument(
+        "--address", default=None, help="ray: the cluster's address (default: RAY_ADDRESS, else a new local one)"
+    )
+    rep.add_argument(
+        "--cpus-per-task", type=int, default=1, help="ray: CPUs (torch threads) per encoder or training task"
+    )
+    rep.add_argument(
+        "--gpus-per-task", type=float, default=0.0, help="ray: GPUs per encoder or training task (e.g. 1 or 0.25)"
+    )
+    rep.add_argument(
+        "--shard-episodes", type=int, default=100, help="ray: episodes per collection task (default: %(default)s)"
+    )
     rep.set_defaults(func=_reproduce, accepts_overrides=True)
 
     report = commands.add_parser("report", help="REPORT.md: every finished grid in results/ beside the paper's tables")
     report.add_argument("--results", default="results")
     report.add_argument("--out", default="REPORT.md")
     report.add_argument("--preface", default="docs/report_preface.md", help="Markdown put before the tables")
-    report.add_argument("--readme", default="README.md",
-                        help="its <!-- results:NAME --> blocks get NAME's table; '' leaves it alone")
+    report.add_argument(
+        "--readme", default="README.md", help="its <!-- results:NAME --> blocks get NAME's table; '' leaves it alone"
+    )
     report.set_defaults(func=_report)
     tr.set_defaults(func=_train)
     return parser
@@ -349,8 +389,17 @@ def _exit_code(error: Exception) -> int | None:
 
     if isinstance(error, ValueError | DraccusException):
         return 2
-    failures = (OSError, CheckpointError, CollectionInterrupted, UnrepairableCollection, HubUnavailable,
-                TrainingInterrupted, UnreadableDataset, FolderInUse, IncompleteEncoder)
+    failures = (
+        OSError,
+        CheckpointError,
+        CollectionInterrupted,
+        UnrepairableCollection,
+        HubUnavailable,
+        TrainingInterrupted,
+        UnreadableDataset,
+        FolderInUse,
+        IncompleteEncoder,
+    )
     return 1 if isinstance(error, failures) else None
 
 
@@ -378,8 +427,10 @@ def main(argv: list[str] | None = None) -> None:
     debug = args.debug or "--debug" in extra or os.environ.get(DEBUG_VARIABLE, "") not in ("", "0")
     extra = [e for e in extra if e != "--debug"]
     if extra and not getattr(args, "accepts_overrides", False):
-        print(f"murm {args.command}: error: unrecognized arguments: {' '.join(extra)} (see murm {args.command} --help)",
-              file=sys.stderr)
+        print(
+            f"murm {args.command}: error: unrecognized arguments: {' '.join(extra)} (see murm {args.command} --help)",
+            file=sys.stderr,
+        )
         raise SystemExit(2)
     args.overrides = extra
     held = None
@@ -395,8 +446,11 @@ def main(argv: list[str] | None = None) -> None:
         print(f"murm {args.command}: {_one_line(error)} (--debug shows where{logged})", file=sys.stderr)
         raise SystemExit(code) from None
     if held and held.errors:
-        print(f"murm {args.command}: note: LeRobot or datasets logged {held.errors} errors, the first: {held.first} "
-              "(--debug shows them all)", file=sys.stderr)
+        print(
+            f"murm {args.command}: note: LeRobot or datasets logged {held.errors} errors, the first: {held.first} "
+            "(--debug shows them all)",
+            file=sys.stderr,
+        )
 
 
 if __name__ == "__main__":

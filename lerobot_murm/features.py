@@ -41,7 +41,7 @@ def latent_goal_key(camera: str) -> str:
 
 
 def _cameras(keys, prefix: str) -> list[str]:
-    return [k[len(prefix):] for k in keys if k.startswith(prefix) and not is_goal(k)]
+    return [k[len(prefix) :] for k in keys if k.startswith(prefix) and not is_goal(k)]
 
 
 def image_cameras(keys) -> list[str]:

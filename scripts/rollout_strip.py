@@ -32,16 +32,29 @@ OVERVIEW = 256  # the video frame's left square: the scene from the front (env/v
 LABEL_HEIGHT = 18
 
 
-def rollout_frames(checkpoint: Path, task: str, seed: int, steps: list[int],
-                   image_size: int = 48) -> tuple[list[np.ndarray], bool]:
+def rollout_frames(
+    checkpoint: Path, task: str, seed: int, steps: list[int], image_size: int = 48
+) -> tuple[list[np.ndarray], bool]:
     """The overview frames at `steps` of one `lerobot-eval` episode, and whether it succeeded."""
     cameras = json.loads((checkpoint / "config.json").read_text())["cameras"]
     with tempfile.TemporaryDirectory() as out:
-        evaluated = subprocess.run([
-            str(Path(sys.executable).parent / "lerobot-eval"), f"--policy.path={checkpoint}", "--env.type=murm",
-            f"--env.task={task}", f"--env.cameras=[{','.join(cameras)}]", f"--env.image_size={image_size}",
-            "--eval.n_episodes=1", "--eval.batch_size=1", f"--seed={seed}", f"--output_dir={out}",
-        ], capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        evaluated = subprocess.run(
+            [
+                str(Path(sys.executable).parent / "lerobot-eval"),
+                f"--policy.path={checkpoint}",
+                "--env.type=murm",
+                f"--env.task={task}",
+                f"--env.cameras=[{','.join(cameras)}]",
+                f"--env.image_size={image_size}",
+                "--eval.n_episodes=1",
+                "--eval.batch_size=1",
+                f"--seed={seed}",
+                f"--output_dir={out}",
+            ],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        )
         if evaluated.returncode != 0:
             last = (evaluated.stderr.strip().splitlines() or ["(no output)"])[-1]
             sys.exit(f"rollout_strip: lerobot-eval failed on {checkpoint}: {last}")
@@ -73,8 +86,13 @@ def main() -> None:
     parser.add_argument(
         "--seed", type=int, default=200_000, help="the episode's seed (default: the first validation seed)"
     )
-    parser.add_argument("--policy", action="append", required=True, metavar="LABEL=CHECKPOINT",
-                        help="a label and a pretrained_model folder; once per row")
+    parser.add_argument(
+        "--policy",
+        action="append",
+        required=True,
+        metavar="LABEL=CHECKPOINT",
+        help="a label and a pretrained_model folder; once per row",
+    )
     parser.add_argument("--steps", type=int, nargs="+", default=[0, 15, 30, 50, 75, 99])
     parser.add_argument("--image-size", type=int, default=48, help="the cameras' size the policies were trained on")
     parser.add_argument("--out", type=Path, required=True)

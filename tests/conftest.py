@@ -66,8 +66,17 @@ def tiny_pipeline(tmp_path_factory):
     root, encoders, cache = base / "place_in_box", base / "vqvae", base / "cache"
     # the paper's std, at which our expert succeeds in every episode: the tests of the later
     # stages need successful episodes, not the default recipe's 75 %
-    collect(CollectConfig(task="place_in_box", root=root, episodes=6, workers=1, cameras=("global", "adjacent"),
-                          image_size=16, noise_std=PAPER_NOISE_STD))
+    collect(
+        CollectConfig(
+            task="place_in_box",
+            root=root,
+            episodes=6,
+            workers=1,
+            cameras=("global", "adjacent"),
+            image_size=16,
+            noise_std=PAPER_NOISE_STD,
+        )
+    )
     tiny = VQVAEConfig(steps=30, batch_size=32, hidden_channels=16, residual_channels=8, codebook_size=32)
     successes = episode_successes(TINY_REPO, root)
     for camera in ("global", "adjacent"):

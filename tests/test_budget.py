@@ -18,15 +18,23 @@ MURM = Path(sys.executable).parent / "murm"
 
 
 def curve_run(cell: str, seed: int, rates: list[float], every: int = 10_000, task: str = "place_in_box") -> dict:
-    return {"cell": cell, "task": task, "seed": seed,
-            "curve": [[every * (i + 1), 0.0, rate] for i, rate in enumerate(rates)]}
+    return {
+        "cell": cell,
+        "task": task,
+        "seed": seed,
+        "curve": [[every * (i + 1), 0.0, rate] for i, rate in enumerate(rates)],
+    }
 
 
 def test_the_budget_is_the_latest_point_where_a_cells_mean_curve_flattens():
     spec = BudgetSpec(cap=60_000, every=10_000, episodes=100)
     # 200 pooled episodes: 0.55 against 0.6 is within two standard errors, 0.45 against 0.6 is not
-    runs = [curve_run("single", 0, [0.1, 0.5, 0.6, 0.6, 0.6, 0.6]), curve_run("single", 1, [0.1, 0.6, 0.6, 0.6, 0.6, 0.6]),
-            curve_run("murm", 0, [0.1, 0.2, 0.3, 0.5, 0.6, 0.6]), curve_run("murm", 1, [0.1, 0.2, 0.3, 0.6, 0.6, 0.6])]
+    runs = [
+        curve_run("single", 0, [0.1, 0.5, 0.6, 0.6, 0.6, 0.6]),
+        curve_run("single", 1, [0.1, 0.6, 0.6, 0.6, 0.6, 0.6]),
+        curve_run("murm", 0, [0.1, 0.2, 0.3, 0.5, 0.6, 0.6]),
+        curve_run("murm", 1, [0.1, 0.2, 0.3, 0.6, 0.6, 0.6]),
+    ]
     decision = choose_budget(spec, runs, cap=60_000, seeds=2)
     assert decision["flat"] and decision["budget"] == 40_000  # murm's mean curve flattens last
     assert {p["cell"]: p["flattens_at"] for p in decision["flattening"]} == {"murm": 40_000, "single": 20_000}
@@ -51,14 +59,18 @@ def test_seeds_evaluated_at_different_steps_are_refused():
         choose_budget(BudgetSpec(cap=20_000, every=10_000), runs, cap=20_000, seeds=2)
 
 
-@pytest.mark.parametrize(("budget", "message"), [
-    ({"cap": 25, "every": 10}, "must be a positive multiple of every"),
-    ({"cap": 20, "every": 10, "max_cap": 10}, "max_cap"),
-])
+@pytest.mark.parametrize(
+    ("budget", "message"),
+    [
+        ({"cap": 25, "every": 10}, "must be a positive multiple of every"),
+        ({"cap": 20, "every": 10, "max_cap": 10}, "max_cap"),
+    ],
+)
 def test_a_bad_budget_is_refused_when_the_config_loads(tmp_path, budget, message):
     path = tmp_path / "grid.yaml"
-    path.write_text(yaml.safe_dump({"name": "b", "cells": [{"method": "single", "cameras": ["global"]}],
-                                    "budget": budget}))
+    path.write_text(
+        yaml.safe_dump({"name": "b", "cells": [{"method": "single", "cameras": ["global"]}], "budget": budget})
+    )
     with pytest.raises(Exception) as error:
         load_reproduce_config(path)
     assert message in str(error.value.__cause__ or error.value)
@@ -66,15 +78,26 @@ def test_a_bad_budget_is_refused_when_the_config_loads(tmp_path, budget, message
 
 @pytest.mark.slow
 def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every_run_at_the_budget(tmp_path):
-    grid = {"name": "budget_tiny", "tasks": ["place_in_box"], "seeds": [0, 1],
-            "collection": {"episodes": 4, "image_size": 16}, "vqvae": {"steps": 20, "batch_size": 16},
-            "train": {"log_every": 10, "eval_envs": 1, "batch_size": 32},
-            "budget": {"cap": 20, "every": 10, "episodes": 2, "max_cap": 40},
-            "cells": [{"method": "single", "cameras": ["global"]}]}
+    grid = {
+        "name": "budget_tiny",
+        "tasks": ["place_in_box"],
+        "seeds": [0, 1],
+        "collection": {"episodes": 4, "image_size": 16},
+        "vqvae": {"steps": 20, "batch_size": 16},
+        "train": {"log_every": 10, "eval_envs": 1, "batch_size": 32},
+        "budget": {"cap": 20, "every": 10, "episodes": 2, "max_cap": 40},
+        "cells": [{"method": "single", "cameras": ["global"]}],
+    }
     config = tmp_path / "grid.yaml"
     config.write_text(yaml.safe_dump(grid))
-    args = [MURM, "reproduce", "--config", config, f"--work_dir={tmp_path / 'work'}",
-            f"--results_dir={tmp_path / 'results'}"]
+    args = [
+        MURM,
+        "reproduce",
+        "--config",
+        config,
+        f"--work_dir={tmp_path / 'work'}",
+        f"--results_dir={tmp_path / 'results'}",
+    ]
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     out = run_command(args, tmp_path, env=env, timeout=900)
     results = tmp_path / "results" / "budget_tiny"
@@ -96,6 +119,9 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
     again = run_command(args, tmp_path, env=env, timeout=900)  # a second sitting finds everything done
     assert "trained to" not in again and f"budget {budget:,} updates" in again
 
-    run_command([MURM, "report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="],
-                tmp_path, env=env)
+    run_command(
+        [MURM, "report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="],
+        tmp_path,
+        env=env,
+    )
     assert "The table's one budget" in (tmp_path / "REPORT.md").read_text()

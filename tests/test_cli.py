@@ -14,9 +14,7 @@ MURM = Path(sys.executable).parent / "murm"
 
 
 def test_murm_demo_writes_the_camera_grid_one_expert_episode_per_task_and_a_small_dataset(tmp_path):
-    result = run(
-        [str(MURM), "demo", "--out", str(tmp_path), "--seed", "0"], timeout=300
-    )
+    result = run([str(MURM), "demo", "--out", str(tmp_path), "--seed", "0"], timeout=300)
     assert result.returncode == 0, result.stderr
     assert_quiet(result.stdout + result.stderr)  # `make run` starts with this command
     lines = [line for line in result.stdout.splitlines() if "seed 0" in line]

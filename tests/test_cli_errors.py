@@ -16,8 +16,19 @@ sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import OFFLINE, run
 
 MURM = Path(sys.executable).parent / "murm"
-COLLECT = ["collect", "--task", "pick_up", "--episodes", "1", "--workers", "1", "--cameras", "global",
-           "--image-size", "16"]
+COLLECT = [
+    "collect",
+    "--task",
+    "pick_up",
+    "--episodes",
+    "1",
+    "--workers",
+    "1",
+    "--cameras",
+    "global",
+    "--image-size",
+    "16",
+]
 QUIET = {**os.environ, **OFFLINE, "TQDM_DISABLE": "1"}  # no progress bars: stderr holds only what went wrong
 
 
@@ -91,8 +102,9 @@ def test_a_torn_dataset_is_a_clear_error(tmp_path, capsys):
     code, line = murm_error(["train-vqvae", "--dataset", root, "--camera", "global", "--out", tmp_path / "vq"], capsys)
     assert code == 1 and f"cannot read the dataset at {root}" in line and "--resume" in line
     # `datasets` logs the error twice before raising it: held back, stderr is the one line
-    code, lines = murm_stderr(["train-vqvae", "--dataset", root, "--camera", "global", "--out", tmp_path / "vq"],
-                              tmp_path)
+    code, lines = murm_stderr(
+        ["train-vqvae", "--dataset", root, "--camera", "global", "--out", tmp_path / "vq"], tmp_path
+    )
     assert code == 1 and len(lines) == 1 and lines[0].startswith(f"murm train-vqvae: cannot read the dataset at {root}")
 
 
@@ -149,9 +161,11 @@ def test_a_truncated_encoder_is_one_line(train_yaml, command):
     encoder = folder / "vqvae" / "global"
     weights = encoder / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[:-100])  # a copy cut short
-    argv = {"encode": ["encode", "--dataset", folder, "--encoders", encoder, "--cache-dir", folder / "cache"],
-            "train": ["train", "--config", train_yaml],
-            "check-encoders": ["check-encoders", "--dataset", folder, "--encoders", encoder]}[command]
+    argv = {
+        "encode": ["encode", "--dataset", folder, "--encoders", encoder, "--cache-dir", folder / "cache"],
+        "train": ["train", "--config", train_yaml],
+        "check-encoders": ["check-encoders", "--dataset", folder, "--encoders", encoder],
+    }[command]
     code, lines = murm_stderr(argv, folder)
     assert code == 1 and len(lines) == 1, lines[-20:]
     assert lines[0].startswith(f"murm {command}: encoder {encoder} is incomplete (model.safetensors unreadable: ")
@@ -173,9 +187,18 @@ def train_yaml(tmp_path) -> Path:
     """A `murm train` config whose encoders exist (untrained: validation reads their files, not their weights)."""
     for camera in ("global", "adjacent"):
         VQVAE(VQVAEConfig(camera=camera)).save(tmp_path / "vqvae" / camera)
-    config = {"dataset": str(tmp_path / "no_dataset"), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
-              "policy": {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"],
-                         "encoder_dir": str(tmp_path / "vqvae"), "epsilon": [1.0, 1.0]}}
+    config = {
+        "dataset": str(tmp_path / "no_dataset"),
+        "task": "place_in_box",
+        "output_dir": str(tmp_path / "run"),
+        "policy": {
+            "type": "murm",
+            "method": "concat",
+            "cameras": ["global", "adjacent"],
+            "encoder_dir": str(tmp_path / "vqvae"),
+            "epsilon": [1.0, 1.0],
+        },
+    }
     path = tmp_path / "train.yaml"
     path.write_text(yaml.safe_dump(config))
     return path
@@ -213,10 +236,13 @@ def test_a_typo_in_a_config_file(train_yaml, capsys):
 
 
 def test_the_whole_reproduce_grid_is_checked_before_collecting(tmp_path, capsys):
-    grid = {"name": "bad", "tasks": ["pick_up"], "work_dir": str(tmp_path / "work"),
-            "results_dir": str(tmp_path / "results"),
-            "cells": [{"method": "single", "cameras": ["global"]},
-                      {"method": "separated-q", "cameras": ["global", "top"]}]}
+    grid = {
+        "name": "bad",
+        "tasks": ["pick_up"],
+        "work_dir": str(tmp_path / "work"),
+        "results_dir": str(tmp_path / "results"),
+        "cells": [{"method": "single", "cameras": ["global"]}, {"method": "separated-q", "cameras": ["global", "top"]}],
+    }
     path = tmp_path / "grid.yaml"
     path.write_text(yaml.safe_dump(grid))
     code, line = murm_error(["reproduce", "--config", path], capsys)
@@ -257,8 +283,7 @@ def test_debug_shows_the_traceback(tmp_path, monkeypatch):
 
 
 def test_the_installed_command_exits_with_one_line(tmp_path):
-    result = run([str(MURM), *COLLECT, "--root", str(tmp_path / "ds"), "--seed", "-5"],
-                            timeout=600)
+    result = run([str(MURM), *COLLECT, "--root", str(tmp_path / "ds"), "--seed", "-5"], timeout=600)
     assert result.returncode == 2
     assert result.stderr.splitlines()[-1] == "murm collect: seed must be >= 0, got -5 (--debug shows where)"
     assert "Traceback" not in result.stderr.split("libtorchcodec loading traceback]")[-1]

@@ -151,8 +151,8 @@ def test_the_cli_reports_an_unwritable_root(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
     result = run(
-        [str(MURM), "collect", "--task", "pick_up", "--episodes", "1", "--root", str(blocker / "ds")],
-        timeout=120)
+        [str(MURM), "collect", "--task", "pick_up", "--episodes", "1", "--root", str(blocker / "ds")], timeout=120
+    )
     assert result.returncode == 1
     expected = f"murm collect: cannot create {blocker / 'ds'}: {blocker} is a file"
     assert result.stderr.splitlines()[-1].startswith(expected)
@@ -216,13 +216,17 @@ def test_an_interrupted_collection_leaves_a_valid_dataset_and_resumes(tmp_path, 
     resumed = run(
         [str(MURM), "collect", "--task", "place_in_box", "--episodes", "6" if saved < 6 else str(saved + 1)]
         + ["--workers", "2", "--root", str(root), "--cameras", "global,active", "--image-size", "16", "--resume"],
-        timeout=300)
+        timeout=300,
+    )
     assert resumed.returncode == 0, resumed.stderr
     final = load(root, "place_in_box")
     target = max(6, saved + 1)
     assert final.meta.total_episodes == target and len(final) == 100 * target
 
     fresh = tmp_path / "fresh"
-    collect(CollectConfig(task="place_in_box", root=fresh, episodes=target, workers=2, cameras=("global", "active"),
-                          image_size=16))
+    collect(
+        CollectConfig(
+            task="place_in_box", root=fresh, episodes=target, workers=2, cameras=("global", "active"), image_size=16
+        )
+    )
     np.testing.assert_array_equal(columns(final)["action"], columns(load(fresh, "place_in_box"))["action"])

@@ -285,8 +285,9 @@ def test_the_authors_box_grid_lands_on_ours():
     from lerobot_murm.env.cameras import AUTHORS_TABLE_TOP_Z, from_authors_frame
     from lerobot_murm.env.tasks import PlaceInBox
 
-    theirs = {from_authors_frame((x, y, AUTHORS_TABLE_TOP_Z))[:2]
-              for x in (0.275, 0.4, 0.525) for y in (-0.25, -0.375, -0.5)}
+    theirs = {
+        from_authors_frame((x, y, AUTHORS_TABLE_TOP_Z))[:2] for x in (0.275, 0.4, 0.525) for y in (-0.25, -0.375, -0.5)
+    }
     ours = {(x, y) for x in PlaceInBox.TRAY_XS for y in PlaceInBox.TRAY_YS}
     assert len(theirs) == 9 and all(min(np.hypot(a - c, b - d) for c, d in ours) < 1e-9 for a, b in theirs)
     assert from_authors_frame((0.0, 0.0, AUTHORS_TABLE_TOP_Z))[2] == 0.0

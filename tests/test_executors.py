@@ -37,11 +37,14 @@ def test_jobs_divide_the_cores_between_their_processes():
     assert list(SerialExecutor().map(divmod, [(7, 2), (9, 4)])) == [((7, 2), (3, 1)), ((9, 4), (2, 1))]
 
 
-@pytest.mark.parametrize("flags, message", [
-    (["--jobs=0"], "--jobs must be at least 1"),
-    (["--executor=ray", "--jobs=2"], "--jobs is for the local executor"),
-    (["--address=127.0.0.1:1"], "--address is for --executor ray"),
-])
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--jobs=0"], "--jobs must be at least 1"),
+        (["--executor=ray", "--jobs=2"], "--jobs is for the local executor"),
+        (["--address=127.0.0.1:1"], "--address is for --executor ray"),
+    ],
+)
 def test_bad_executor_flags_stop_with_one_line(flags, message, capsys):
     from lerobot_murm.cli import main
 
@@ -70,9 +73,14 @@ def ray_cluster():
     def start(*args: str) -> None:
         # a raylet must register within Ray's fixed 30 s; a busy machine can miss that: try again
         for _ in range(3):
-            node = subprocess.Popen([str(RAY), "start", *args, f"--dashboard-agent-listen-port={_free_port()}"],
-                                    env=env, start_new_session=True, stdout=subprocess.PIPE,
-                                    stderr=subprocess.STDOUT, text=True)
+            node = subprocess.Popen(
+                [str(RAY), "start", *args, f"--dashboard-agent-listen-port={_free_port()}"],
+                env=env,
+                start_new_session=True,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
             nodes.append(node)
             out = node.communicate(timeout=180)[0]
             if node.returncode == 0:
@@ -81,8 +89,13 @@ def ray_cluster():
         raise AssertionError(f"ray start {' '.join(args)} failed 3 times:\n{out[-3000:]}")
 
     try:
-        start("--head", f"--port={address.split(':')[1]}", "--num-cpus=1", f"--temp-dir={temp}",
-              "--include-dashboard=false")
+        start(
+            "--head",
+            f"--port={address.split(':')[1]}",
+            "--num-cpus=1",
+            f"--temp-dir={temp}",
+            "--include-dashboard=false",
+        )
         start(f"--address={address}", "--num-cpus=2")
         yield address
     finally:
@@ -117,6 +130,7 @@ def _task_processes(name: str) -> list[int]:
 
 def _without_timings(result: dict) -> dict:
     """A run's result less its wall times (the evaluations' `seconds` included)."""
+
     def strip(value):
         if isinstance(value, list):
             return [strip(v) for v in value]
@@ -137,12 +151,31 @@ def test_the_smoke_grid_on_a_ray_cluster_matches_the_local_executor_and_survives
     grid = ["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *TINY]
     # the reference: the local executor, one torch thread like every Ray task here (so the same arithmetic)
     env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "1"}
-    local = subprocess.Popen([str(MURM), *grid, f"--work_dir={tmp_path / 'local'}",
-                              f"--results_dir={tmp_path / 'local' / 'results'}"],
-                             cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    on_ray = subprocess.Popen([str(MURM), *grid, "--work_dir=ray", "--results_dir=ray/results", "--executor=ray",
-                               f"--address={ray_cluster}", "--cpus-per-task=1", "--shard-episodes=2"],
-                              cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    local = subprocess.Popen(
+        [str(MURM), *grid, f"--work_dir={tmp_path / 'local'}", f"--results_dir={tmp_path / 'local' / 'results'}"],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    on_ray = subprocess.Popen(
+        [
+            str(MURM),
+            *grid,
+            "--work_dir=ray",
+            "--results_dir=ray/results",
+            "--executor=ray",
+            f"--address={ray_cluster}",
+            "--cpus-per-task=1",
+            "--shard-episodes=2",
+        ],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         # kill -9 the workers running training tasks once a run has a checkpoint to resume from
         deadline, killed = time.monotonic() + 600, []
@@ -197,9 +230,22 @@ def test_no_job_process_outlives_a_killed_driver_and_a_stopped_run_keeps_its_che
     env = {**os.environ, "HF_HUB_OFFLINE": "1", name: value}
     # no evaluation before the end: the only checkpoints are a run's start and the one its stop writes
     long = [*TINY, "--train.steps=100000", "--train.eval_every=100000", "--seeds=[0,1,2]", "--stack_seeds=false"]
-    driver = subprocess.Popen([str(MURM), "reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *long,
-                               "--work_dir=work", "--results_dir=results", "--jobs=2"],
-                              cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    driver = subprocess.Popen(
+        [
+            str(MURM),
+            "reproduce",
+            "--config",
+            str(REPO / "configs/reproduce/smoke.yaml"),
+            *long,
+            "--work_dir=work",
+            "--results_dir=results",
+            "--jobs=2",
+        ],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     logs = lambda: sorted((tmp_path / "work" / "runs").glob("smoke/*/*/seed*/log.csv"))  # noqa: E731
     try:
         deadline = time.monotonic() + 600

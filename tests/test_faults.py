@@ -128,15 +128,23 @@ def collect_until_killed(args: list[str], root: Path, rng: random.Random) -> Non
 def test_kill_9_at_random_points_then_resume_gives_the_unbroken_dataset(tmp_path):
     episodes, flush_every = 12, 2
     reference = tmp_path / "unbroken"
-    collect(CollectConfig(task="place_in_box", root=reference, episodes=episodes, workers=1,
-                          cameras=("global", "active"), image_size=16, flush_every=flush_every))
+    collect(
+        CollectConfig(
+            task="place_in_box",
+            root=reference,
+            episodes=episodes,
+            workers=1,
+            cameras=("global", "active"),
+            image_size=16,
+            flush_every=flush_every,
+        )
+    )
 
     root, rng = tmp_path / "killed", random.Random(16)
     collect_until_killed(murm_collect(root, episodes, flush_every, resume=False), root, rng)
     collect_until_killed(murm_collect(root, episodes, flush_every, resume=True), root, rng)
     assert saved_episodes(root) < episodes, "killed too late to test anything"
-    finished = run(murm_collect(root, episodes, flush_every, resume=True),
-                              timeout=300)
+    finished = run(murm_collect(root, episodes, flush_every, resume=True), timeout=300)
     assert finished.returncode == 0, finished.stderr[-2000:]
     assert contents(root) == contents(reference)  # the same files, metadata included
 
@@ -180,8 +188,17 @@ def test_a_full_disk_mid_collection_loses_only_the_unflushed_episodes(tmp_path):
     after making room, --resume ends with the unbroken dataset."""
     episodes, flush_every = 6, 2
     reference = tmp_path / "unbroken"
-    collect(CollectConfig(task="place_in_box", root=reference, episodes=episodes, workers=1,
-                          cameras=("global", "active"), image_size=16, flush_every=flush_every))
+    collect(
+        CollectConfig(
+            task="place_in_box",
+            root=reference,
+            episodes=episodes,
+            workers=1,
+            cameras=("global", "active"),
+            image_size=16,
+            flush_every=flush_every,
+        )
+    )
     root = tmp_path / "ds"
     command = [str(MURM), "collect", *RECIPE, "--root", str(root), "--workers", "1"]
     first = run(command + ["--episodes", "2", "--flush-every", "2"], timeout=300)
@@ -189,15 +206,15 @@ def test_a_full_disk_mid_collection_loses_only_the_unflushed_episodes(tmp_path):
     two_episodes = max(p.stat().st_size for p in root.glob("data/*/*.parquet"))
 
     small_disk = disk_full_past(int(1.5 * two_episodes))  # the next data file fails in its third episode
-    full = run(command + ["--episodes", str(episodes), "--flush-every", "100", "--resume"],
-                          timeout=300, preexec_fn=small_disk)
+    full = run(
+        command + ["--episodes", str(episodes), "--flush-every", "100", "--resume"], timeout=300, preexec_fn=small_disk
+    )
     assert full.returncode == 1, full.stderr[-2000:]
     assert full.stderr.splitlines()[-1].startswith(f"murm collect: cannot write to {root} (")
     assert "2 of 6 episodes are safely saved; make room, then run again with --resume" in full.stderr
     assert "Traceback" not in full.stderr.split("libtorchcodec loading traceback]")[-1]
 
-    resumed = run(command + ["--episodes", str(episodes), "--flush-every", str(flush_every), "--resume"],
-                             timeout=300)
+    resumed = run(command + ["--episodes", str(episodes), "--flush-every", str(flush_every), "--resume"], timeout=300)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert "removed" in resumed.stdout  # the torn files of the full disk
     assert contents(root) == contents(reference)
@@ -289,8 +306,12 @@ def test_a_training_state_holds_plain_values_and_loads_no_code(tmp_path):
     assert not marker.exists()
     with pytest.raises(TypeError, match=r"state\['rng'\] is a Generator"):  # found when saved, not at resume
         save_state({"step": 5, "rng": np.random.default_rng(0)}, path)
-    state = {"step": 5, "rng": np.random.default_rng(0).bit_generator.state, "weights": torch.ones(2),
-             "betas": (0.9, 1)}
+    state = {
+        "step": 5,
+        "rng": np.random.default_rng(0).bit_generator.state,
+        "weights": torch.ones(2),
+        "betas": (0.9, 1),
+    }
     save_state(state, path)
     assert torch.load(path, weights_only=True)["rng"] == state["rng"]
 
@@ -310,9 +331,20 @@ def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_pipeline, 
     `checkpoints/last.old`: the next run recovers it and resumes there."""
     root, encoders = tiny_pipeline
     policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
-    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
-              "cache_dir": str(tmp_path / "cache"), "steps": 4, "batch_size": 16, "log_every": 1, "eval_every": 100,
-              "eval_episodes": 1, "final_eval_episodes": 1, "eval_envs": 1, "policy": policy}
+    config = {
+        "dataset": str(root),
+        "task": "place_in_box",
+        "output_dir": str(tmp_path / "run"),
+        "cache_dir": str(tmp_path / "cache"),
+        "steps": 4,
+        "batch_size": 16,
+        "log_every": 1,
+        "eval_every": 100,
+        "eval_episodes": 1,
+        "final_eval_episodes": 1,
+        "eval_envs": 1,
+        "policy": policy,
+    }
     path = tmp_path / "train.yaml"
     path.write_text(yaml.safe_dump(config))
     command = [str(MURM), "train", "--config", str(path)]
@@ -352,8 +384,9 @@ def test_a_full_disk_while_keeping_an_encoder_leaves_no_kept_encoder_that_looks_
     trained.mkdir(parents=True)
     (trained / "config.json").write_text("{}")
     (trained / "model.safetensors").write_bytes(random.Random(0).randbytes(1 << 20))
-    (trained / "metrics.json").write_text(json.dumps({"interrupted": False,
-                                                      "steps": driver.encoder_steps(config, "global")}))
+    (trained / "metrics.json").write_text(
+        json.dumps({"interrupted": False, "steps": driver.encoder_steps(config, "global")})
+    )
     command = [sys.executable, "-c", KEEP_GLOBAL_ENCODER, str(table6), *overrides]
 
     full = run(command, timeout=120, preexec_fn=disk_full_past(1 << 16))
@@ -444,15 +477,29 @@ def test_kill_9_of_the_trainer_during_evaluation_leaves_no_worker_and_no_traceba
     root, encoders = tiny_pipeline
     policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
     steps = 2
-    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
-              "cache_dir": str(tmp_path / "cache"), "steps": steps, "batch_size": 16, "log_every": 1,
-              "eval_every": 100, "final_eval_episodes": 20, "eval_envs": 2, "policy": policy}
+    config = {
+        "dataset": str(root),
+        "task": "place_in_box",
+        "output_dir": str(tmp_path / "run"),
+        "cache_dir": str(tmp_path / "cache"),
+        "steps": steps,
+        "batch_size": 16,
+        "log_every": 1,
+        "eval_every": 100,
+        "final_eval_episodes": 20,
+        "eval_envs": 2,
+        "policy": policy,
+    }
     path = tmp_path / "train.yaml"
     path.write_text(yaml.safe_dump(config))
     output, log = tmp_path / "output.txt", tmp_path / "run" / "log.csv"
     with output.open("w") as out:  # what `murm train ... > output.txt 2>&1` would hold
-        trainer = subprocess.Popen([str(MURM), "train", "--config", str(path)], stdout=out, stderr=subprocess.STDOUT,
-                                   env=os.environ | {"HF_HUB_OFFLINE": "1"})
+        trainer = subprocess.Popen(
+            [str(MURM), "train", "--config", str(path)],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=os.environ | {"HF_HUB_OFFLINE": "1"},
+        )
     deadline = time.monotonic() + 600  # a liveness bound for a crowded machine
     try:
         while not log.exists() or log.read_text().splitlines()[-1].split(",")[0] != str(steps):

@@ -37,13 +37,28 @@ def test_a_choosing_grids_report_says_where_each_curve_flattens_and_what_the_cel
     config = load_reproduce_config(REPO / "configs/reproduce/updates.yaml", ["--tasks=[place_in_box,pick_up]"])
     assert config.choose_updates and config.train.eval_episodes == 100
     draccus.dump(config, (grid / "config.yaml").open("w"))
-    curves = [("place_in_box", "single-global", [[10000, 0.0, 0.3], [20000, 0.0, 0.7], [30000, 0.0, 0.7],
-                                                 [40000, 0.0, 0.71]]),
-              ("pick_up", "single-global", [[10000, 0.0, 0.1], [20000, 0.0, 0.1], [30000, 0.0, 0.3],
-                                            [40000, 0.0, 0.3]]),
-              ("place_in_box", "dropout-global+adjacent", [[10000, 0.0, 0.0], [20000, 0.0, 0.06], [30000, 0.0, 0.08],
-                                                           [40000, 0.0, 0.29], [10000, 0.5, 0.0], [20000, 0.5, 0.3],
-                                                           [30000, 0.5, 0.3], [40000, 0.5, 0.3]])]
+    curves = [
+        (
+            "place_in_box",
+            "single-global",
+            [[10000, 0.0, 0.3], [20000, 0.0, 0.7], [30000, 0.0, 0.7], [40000, 0.0, 0.71]],
+        ),
+        ("pick_up", "single-global", [[10000, 0.0, 0.1], [20000, 0.0, 0.1], [30000, 0.0, 0.3], [40000, 0.0, 0.3]]),
+        (
+            "place_in_box",
+            "dropout-global+adjacent",
+            [
+                [10000, 0.0, 0.0],
+                [20000, 0.0, 0.06],
+                [30000, 0.0, 0.08],
+                [40000, 0.0, 0.29],
+                [10000, 0.5, 0.0],
+                [20000, 0.5, 0.3],
+                [30000, 0.5, 0.3],
+                [40000, 0.5, 0.3],
+            ],
+        ),
+    ]
     for task, cell, curve in curves:
         run = stored_run(task, cell, cell.split("-")[0], ["global"], steps=40000, curve=curve)
         (grid / "runs" / f"{task}__{cell}__seed0.json").write_text(json.dumps(run))

@@ -24,8 +24,17 @@ MURM = Path(sys.executable).parent / "murm"
 @pytest.fixture(scope="module")
 def collected(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("collected") / "ds"
-    collect(CollectConfig(task="place_in_random_box", root=root, episodes=2, workers=1, cameras=("global", "top"),
-                          image_size=16, noise_std=PAPER_NOISE_STD))
+    collect(
+        CollectConfig(
+            task="place_in_random_box",
+            root=root,
+            episodes=2,
+            workers=1,
+            cameras=("global", "top"),
+            image_size=16,
+            noise_std=PAPER_NOISE_STD,
+        )
+    )
     return root
 
 

@@ -92,8 +92,9 @@ def test_separated_q_averages_one_head_per_camera():
     # camera 1's input does not reach camera 0's heads
     other = state.clone()
     other[:, 1] += 1.0
-    torch.testing.assert_close(_head(q, 0, 0, torch.cat([other[:, 0], action], -1)),
-                               _head(q, 0, 0, torch.cat([state[:, 0], action], -1)))
+    torch.testing.assert_close(
+        _head(q, 0, 0, torch.cat([other[:, 0], action], -1)), _head(q, 0, 0, torch.cat([state[:, 0], action], -1))
+    )
 
 
 def test_double_q_on_the_whole_state_has_two_independent_heads():

@@ -30,8 +30,15 @@ BIN = Path(sys.executable).parent
 SCRIPTS = Path(__file__).parents[1] / "scripts"
 CAMERAS = ["global", "adjacent"]
 LATENT_REPO = "local/latents"
-TRAIN_ARGS = ["--policy.type=murm", "--policy.method=dropout", f"--policy.cameras=[{','.join(CAMERAS)}]",
-              f"--dataset.repo_id={LATENT_REPO}", "--wandb.enable=false", "--batch_size=16", "--num_workers=0"]
+TRAIN_ARGS = [
+    "--policy.type=murm",
+    "--policy.method=dropout",
+    f"--policy.cameras=[{','.join(CAMERAS)}]",
+    f"--dataset.repo_id={LATENT_REPO}",
+    "--wandb.enable=false",
+    "--batch_size=16",
+    "--num_workers=0",
+]
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +46,21 @@ def latents(tiny_pipeline, tmp_path_factory) -> Path:
     """`murm encode --to-dataset` on the tiny demonstrations; the latent cache folder is beside it."""
     root, encoders = tiny_pipeline
     base = tmp_path_factory.mktemp("latents")
-    out = run_command([BIN / "murm", "encode", "--dataset", root, "--encoders", *(encoders / c for c in CAMERAS),
-                       "--cache-dir", base / "cache", "--to-dataset", base / "latents"], cwd=base)
+    out = run_command(
+        [
+            BIN / "murm",
+            "encode",
+            "--dataset",
+            root,
+            "--encoders",
+            *(encoders / c for c in CAMERAS),
+            "--cache-dir",
+            base / "cache",
+            "--to-dataset",
+            base / "latents",
+        ],
+        cwd=base,
+    )
     assert "latent dataset" in out and "600 frames" in out
     return base / "latents"
 
@@ -106,8 +126,13 @@ def test_both_trainers_draw_the_same_transitions(tiny_pipeline, latents):
     policy = make_policy(config, ds_meta=dataset.meta)
     preprocessor, _ = make_pre_post_processors(config, dataset_stats=dataset.meta.stats)
     episodes = dataset.meta.episodes
-    sampler = EpisodeAwareSampler(episodes["dataset_from_index"], episodes["dataset_to_index"],
-                                  drop_n_last_frames=config.drop_n_last_frames, shuffle=True, seed=0)
+    sampler = EpisodeAwareSampler(
+        episodes["dataset_from_index"],
+        episodes["dataset_to_index"],
+        drop_n_last_frames=config.drop_n_last_frames,
+        shuffle=True,
+        seed=0,
+    )
     loader = torch.utils.data.DataLoader(dataset, batch_size=256, sampler=sampler)
     torch.manual_seed(0)
     rows, relabelled, offsets = [], [], []
@@ -123,8 +148,10 @@ def test_both_trainers_draw_the_same_transitions(tiny_pipeline, latents):
     fast_offsets = (fast.goal_row - fast.row)[fast.relabelled]
     assert stats.ks_2samp(fast_offsets.numpy(), slow_offsets.numpy()).pvalue > 0.01
     assert stats.ks_2samp(fast.row.numpy(), slow_rows.numpy()).pvalue > 0.01
-    table = [[int(fast.relabelled.sum()), int((~fast.relabelled).sum())],
-             [int(slow_relabelled.sum()), int((~slow_relabelled).sum())]]
+    table = [
+        [int(fast.relabelled.sum()), int((~fast.relabelled).sum())],
+        [int(slow_relabelled.sum()), int((~slow_relabelled).sum())],
+    ]
     assert stats.chi2_contingency(table).pvalue > 0.01
     assert abs(slow_relabelled.float().mean().item() - config.her_ratio) < 0.01
     assert slow_offsets.min() >= 1 and fast_offsets.min() >= 1
@@ -134,9 +161,19 @@ def test_both_trainers_draw_the_same_transitions(tiny_pipeline, latents):
 def lerobot_trained(tiny_pipeline, latents, tmp_path_factory) -> tuple[str, Path]:
     """(the log, the checkpoint) of a short stock `lerobot-train` run on the latent dataset."""
     base = tmp_path_factory.mktemp("lerobot_train")
-    log = run_command([BIN / "lerobot-train", *TRAIN_ARGS, f"--policy.encoder_dir={tiny_pipeline[1]}",
-                       f"--dataset.root={latents}", "--steps=4", "--save_freq=4", "--log_freq=1",
-                       f"--output_dir={base / 'run'}"], cwd=base)
+    log = run_command(
+        [
+            BIN / "lerobot-train",
+            *TRAIN_ARGS,
+            f"--policy.encoder_dir={tiny_pipeline[1]}",
+            f"--dataset.root={latents}",
+            "--steps=4",
+            "--save_freq=4",
+            "--log_freq=1",
+            f"--output_dir={base / 'run'}",
+        ],
+        cwd=base,
+    )
     return log, base / "run" / "checkpoints" / "last" / "pretrained_model"
 
 
@@ -145,9 +182,20 @@ def test_lerobot_train_learns_from_the_latent_dataset_and_lerobot_eval_runs_its_
     assert "critic_loss" in log and "actor_loss" in log
     assert "observation.latent.global" in json.loads((checkpoint / "config.json").read_text())["input_features"]
     out = tmp_path / "eval"
-    run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", "--env.type=murm", "--env.task=place_in_box",
-                 "--env.image_size=16", f"--env.cameras=[{','.join(CAMERAS)}]", "--eval.n_episodes=1",
-                 "--eval.batch_size=1", f"--output_dir={out}"], cwd=tmp_path)
+    run_command(
+        [
+            BIN / "lerobot-eval",
+            f"--policy.path={checkpoint}",
+            "--env.type=murm",
+            "--env.task=place_in_box",
+            "--env.image_size=16",
+            f"--env.cameras=[{','.join(CAMERAS)}]",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            f"--output_dir={out}",
+        ],
+        cwd=tmp_path,
+    )
     assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
 
 
@@ -156,22 +204,66 @@ def test_rollout_strip_draws_each_checkpoint_on_the_same_episode(lerobot_trained
 
     checkpoint = lerobot_trained[1]
     out = tmp_path / "strip.png"
-    printed = run_command([sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--image-size", "16",
-                           "--steps", "0", "50", "99", "--policy", f"first=mine={checkpoint}",
-                           "--policy", f"second={checkpoint}", "--out", out], cwd=tmp_path)
+    printed = run_command(
+        [
+            sys.executable,
+            SCRIPTS / "rollout_strip.py",
+            "--task",
+            "place_in_box",
+            "--image-size",
+            "16",
+            "--steps",
+            "0",
+            "50",
+            "99",
+            "--policy",
+            f"first=mine={checkpoint}",
+            "--policy",
+            f"second={checkpoint}",
+            "--out",
+            out,
+        ],
+        cwd=tmp_path,
+    )
     assert "first=mine: " in printed and "second: " in printed  # a label may hold "="
     strip = np.asarray(Image.open(out).convert("RGB"))
     assert strip.shape == (2 * (256 + 18), 3 * 256, 3)
-    first, second = strip[18:274], strip[274 + 18:]
+    first, second = strip[18:274], strip[274 + 18 :]
     np.testing.assert_array_equal(first, second)  # one policy, one episode seed: the same frames
     assert not np.array_equal(first[:, :256], first[:, 512:])  # the scene changes over the episode
-    bad = subprocess.run([sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--policy",
-                          f"x={tmp_path}", "--out", out], capture_output=True, text=True, timeout=120)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            SCRIPTS / "rollout_strip.py",
+            "--task",
+            "place_in_box",
+            "--policy",
+            f"x={tmp_path}",
+            "--out",
+            out,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode != 0 and "expected LABEL=CHECKPOINT" in bad.stderr and "Traceback" not in bad.stderr
     (tmp_path / "not_a_policy").mkdir()
     (tmp_path / "not_a_policy" / "config.json").write_text('{"cameras": ["global"]}')
-    bad = subprocess.run([sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--policy",
-                          f"x={tmp_path / 'not_a_policy'}", "--out", out], capture_output=True, text=True, timeout=300)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            SCRIPTS / "rollout_strip.py",
+            "--task",
+            "place_in_box",
+            "--policy",
+            f"x={tmp_path / 'not_a_policy'}",
+            "--out",
+            out,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert bad.returncode != 0 and "Traceback" not in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1 and bad.stderr.startswith("rollout_strip: lerobot-eval failed on ")
 
@@ -180,10 +272,30 @@ def test_lerobot_train_under_accelerate_with_two_processes_saves_a_checkpoint(ti
     """Two data-parallel ranks on the CPU: accelerate's `--multi_gpu` starts them through torchrun
     (gloo when there is no GPU); `--cpu --num_processes 2` alone would start one process."""
     encoders = tiny_pipeline[1]
-    log = run_command([BIN / "accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
-                       "--mixed_precision", "no", "--dynamo_backend", "no", BIN / "lerobot-train", *TRAIN_ARGS,
-                       f"--policy.encoder_dir={encoders}", f"--dataset.root={latents}", "--steps=3", "--save_freq=3",
-                       "--log_freq=1", f"--output_dir={tmp_path / 'run'}"], cwd=tmp_path)
+    log = run_command(
+        [
+            BIN / "accelerate",
+            "launch",
+            "--multi_gpu",
+            "--num_processes",
+            "2",
+            "--num_machines",
+            "1",
+            "--mixed_precision",
+            "no",
+            "--dynamo_backend",
+            "no",
+            BIN / "lerobot-train",
+            *TRAIN_ARGS,
+            f"--policy.encoder_dir={encoders}",
+            f"--dataset.root={latents}",
+            "--steps=3",
+            "--save_freq=3",
+            "--log_freq=1",
+            f"--output_dir={tmp_path / 'run'}",
+        ],
+        cwd=tmp_path,
+    )
     assert "critic_loss" in log and "Effective batch size: 16 x 2 = 32" in log
     checkpoint = tmp_path / "run" / "checkpoints" / "000003"
     assert (checkpoint / "pretrained_model" / "model.safetensors").exists()
@@ -198,8 +310,13 @@ def test_push_uploads_the_latent_dataset_with_its_card_and_pull_gets_it_back(lat
     readme = files["README.md"].decode()
     assert card in readme
     description = json.loads((latents / "meta/murm_latents.json").read_text())
-    for fact in ("local/place_in_box", "`observation.latent.adjacent_goal`", "murm train-vqvae",
-                 description["cameras"]["global"]["encoder_fingerprint"], "murm encode --dataset"):
+    for fact in (
+        "local/place_in_box",
+        "`observation.latent.adjacent_goal`",
+        "murm train-vqvae",
+        description["cameras"]["global"]["encoder_fingerprint"],
+        "murm encode --dataset",
+    ):
         assert fact in readme, fact
 
     pulled = pull_dataset("tester/murm_latents", tmp_path / "pulled")

@@ -29,8 +29,15 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "lerobot_murm"
 
 FLOORS = [
-    ("lerobot_murm.features", "lerobot_murm.checkpointing", "lerobot_murm.checks", "lerobot_murm.device",
-     "lerobot_murm.locking", "lerobot_murm.library_logs", "lerobot_murm.training_loop"),
+    (
+        "lerobot_murm.features",
+        "lerobot_murm.checkpointing",
+        "lerobot_murm.checks",
+        "lerobot_murm.device",
+        "lerobot_murm.locking",
+        "lerobot_murm.library_logs",
+        "lerobot_murm.training_loop",
+    ),
     ("lerobot_murm.env",),
     ("lerobot_murm.expert",),
     ("lerobot_murm.collection",),
@@ -87,8 +94,10 @@ def upward_imports(package: Path = PACKAGE) -> list[str]:
     for module, path in found.items():
         for line, target in imported(path.read_text(), module, path.name == "__init__.py", set(found)):
             if floor_of(target) > floor_of(module):
-                upward.append(f"{path.relative_to(package.parent)}:{line}: {module} (floor {floor_of(module)}) "
-                              f"imports {target} (floor {floor_of(target)})")
+                upward.append(
+                    f"{path.relative_to(package.parent)}:{line}: {module} (floor {floor_of(module)}) "
+                    f"imports {target} (floor {floor_of(target)})"
+                )
     return upward
 
 
@@ -101,19 +110,32 @@ def test_no_module_imports_one_on_a_later_floor():
     assert not upward, "imports pointing up the pipeline:\n" + "\n".join(upward)
 
 
-@pytest.mark.parametrize(("source", "upward"), [
-    ("from lerobot_murm.policy.iql import DoubleQ\n", True),
-    ("def f():\n    import lerobot_murm.experiments.report\n", True),  # inside a function too
-    ("from lerobot_murm import publishing\n", True),  # a module named in `from package import`
-    ("from ..publishing import card\n", True),  # relative
-    ("from lerobot_murm.env import MurmEnv\nfrom lerobot_murm import features\n", False),
-    ("from . import frames\n", False),
-])
+@pytest.mark.parametrize(
+    ("source", "upward"),
+    [
+        ("from lerobot_murm.policy.iql import DoubleQ\n", True),
+        ("def f():\n    import lerobot_murm.experiments.report\n", True),  # inside a function too
+        ("from lerobot_murm import publishing\n", True),  # a module named in `from package import`
+        ("from ..publishing import card\n", True),  # relative
+        ("from lerobot_murm.env import MurmEnv\nfrom lerobot_murm import features\n", False),
+        ("from . import frames\n", False),
+    ],
+)
 def test_the_walk_finds_an_upward_import(tmp_path, source, upward):
     package = tmp_path / "lerobot_murm"
-    for name in ("__init__.py", "features.py", "env/__init__.py", "vqvae/__init__.py", "vqvae/frames.py",
-                 "publishing/__init__.py", "publishing/card.py", "policy/__init__.py", "policy/iql.py",
-                 "experiments/__init__.py", "experiments/report.py"):
+    for name in (
+        "__init__.py",
+        "features.py",
+        "env/__init__.py",
+        "vqvae/__init__.py",
+        "vqvae/frames.py",
+        "publishing/__init__.py",
+        "publishing/card.py",
+        "policy/__init__.py",
+        "policy/iql.py",
+        "experiments/__init__.py",
+        "experiments/report.py",
+    ):
         (package / name).parent.mkdir(parents=True, exist_ok=True)
         (package / name).write_text("")
     (package / "vqvae" / "check.py").write_text(source)

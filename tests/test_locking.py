@@ -46,8 +46,9 @@ def holder(folder: Path, how: str) -> tuple[subprocess.Popen, list[str]]:
     it when its stdin is closed (`release`); with what it printed until it held the lock."""
     printed = folder.with_name(f"{how}.out")
     with printed.open("w") as out:
-        process = subprocess.Popen([sys.executable, "-c", HOLD, str(folder), how], stdin=subprocess.PIPE,
-                                   stdout=out, text=True)
+        process = subprocess.Popen(
+            [sys.executable, "-c", HOLD, str(folder), how], stdin=subprocess.PIPE, stdout=out, text=True
+        )
     deadline = time.monotonic() + 300  # a liveness bound for a crowded machine
     while "locked" not in printed.read_text().split():
         assert process.poll() in (None, -signal.SIGKILL), f"the holder exited with {process.returncode} before locking"
@@ -80,8 +81,10 @@ def test_a_second_writer_fails_at_once_naming_the_holder(tmp_path):
         result = run([sys.executable, "-c", HOLD, folder, "release"], timeout=600, cwd=tmp_path, env=QUIET)
         code, stderr = result.returncode, result.stderr
         assert code == 1
-        assert stderr.splitlines()[-1] == (f"lerobot_murm.locking.FolderInUse: {folder} is in use by another writer "
-                                           f"(PID {os.getpid()}); wait for it to finish or stop it")
+        assert stderr.splitlines()[-1] == (
+            f"lerobot_murm.locking.FolderInUse: {folder} is in use by another writer "
+            f"(PID {os.getpid()}); wait for it to finish or stop it"
+        )
     assert not lock_file(folder).exists()  # removed on release
 
 
@@ -120,10 +123,25 @@ def test_a_job_waits_for_the_holder(tmp_path, monkeypatch):
 def test_a_second_collection_of_one_folder_exits_at_once_and_the_first_finishes(tmp_path):
     """Two collections of one folder made a corrupt parquet file that stock LeRobot could not read."""
     root = tmp_path / "ds"
-    collect = [MURM, "collect", "--task", "pick_up", "--episodes", "5", "--workers", "1", "--cameras", "global",
-               "--image-size", "16", "--root", root]
-    first = subprocess.Popen([str(a) for a in collect], env=QUIET, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                             text=True)
+    collect = [
+        MURM,
+        "collect",
+        "--task",
+        "pick_up",
+        "--episodes",
+        "5",
+        "--workers",
+        "1",
+        "--cameras",
+        "global",
+        "--image-size",
+        "16",
+        "--root",
+        root,
+    ]
+    first = subprocess.Popen(
+        [str(a) for a in collect], env=QUIET, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
     try:
         wait_for_lock(root, first)
         first.send_signal(signal.SIGSTOP)  # it holds the lock, mid-collection, while the second runs
@@ -132,7 +150,8 @@ def test_a_second_collection_of_one_folder_exits_at_once_and_the_first_finishes(
         first.send_signal(signal.SIGCONT)
         assert code == 1 and stderr.splitlines() == [
             f"murm collect: {root} is in use by another writer (PID {first.pid}); wait for it to finish or stop it "
-            "(--debug shows where)"]
+            "(--debug shows where)"
+        ]
         assert first.wait(timeout=300) == 0, first.stderr.read()[-2000:]
     finally:
         first.kill()
@@ -146,14 +165,31 @@ def test_a_second_training_of_one_run_folder_exits_at_once_and_the_first_logs_ea
     """Two trainers of one folder wrote every log row twice and two final evaluations."""
     root, encoders = tiny_pipeline
     policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
-    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
-              "cache_dir": str(tmp_path / "cache"), "steps": 4, "batch_size": 16, "log_every": 1, "eval_every": 100,
-              "eval_episodes": 1, "final_eval_episodes": 1, "eval_envs": 1, "policy": policy}
+    config = {
+        "dataset": str(root),
+        "task": "place_in_box",
+        "output_dir": str(tmp_path / "run"),
+        "cache_dir": str(tmp_path / "cache"),
+        "steps": 4,
+        "batch_size": 16,
+        "log_every": 1,
+        "eval_every": 100,
+        "eval_episodes": 1,
+        "final_eval_episodes": 1,
+        "eval_envs": 1,
+        "policy": policy,
+    }
     path = tmp_path / "train.yaml"
     path.write_text(yaml.safe_dump(config))
     train = [MURM, "train", "--config", path]
-    first = subprocess.Popen([str(a) for a in train], env=QUIET, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                             text=True, start_new_session=True)
+    first = subprocess.Popen(
+        [str(a) for a in train],
+        env=QUIET,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         wait_for_lock(tmp_path / "run", first)
         os.killpg(first.pid, signal.SIGSTOP)  # with its simulator workers
@@ -162,7 +198,8 @@ def test_a_second_training_of_one_run_folder_exits_at_once_and_the_first_logs_ea
         os.killpg(first.pid, signal.SIGCONT)
         assert code == 1 and stderr.splitlines() == [
             f"murm train: {tmp_path / 'run'} is in use by another writer (PID {first.pid}); wait for it to finish or "
-            "stop it (--debug shows where)"]
+            "stop it (--debug shows where)"
+        ]
         assert first.wait(timeout=600) == 0, first.stderr.read()[-3000:]
     finally:
         with suppress(ProcessLookupError):  # what is left of it after a failure

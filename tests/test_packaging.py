@@ -45,17 +45,45 @@ def installed(tmp_path_factory) -> tuple[Path, dict]:
             shutil.copytree(REPO / name, sources / name, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
         else:
             shutil.copy2(REPO / name, sources / name)
-    run_command([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index", "-q",
-                 "-w", base / "dist", sources], cwd=base)
+    run_command(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "-q",
+            "-w",
+            base / "dist",
+            sources,
+        ],
+        cwd=base,
+    )
     (wheel,) = (base / "dist").glob("lerobot_policy_murm-*.whl")
     assert CARD_TEMPLATE in zipfile.ZipFile(wheel).namelist()
 
     venv = base / "venv"
     run_command([sys.executable, "-m", "venv", "--without-pip", venv], cwd=base)
-    run_command([sys.executable, "-m", "pip", "--python", venv / "bin" / "python", "install", "--no-deps",
-                 "--no-index", "-q", wheel], cwd=base)
-    purelib = run_command([venv / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
-                          base)
+    run_command(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "--python",
+            venv / "bin" / "python",
+            "install",
+            "--no-deps",
+            "--no-index",
+            "-q",
+            wheel,
+        ],
+        cwd=base,
+    )
+    purelib = run_command(
+        [venv / "bin" / "python", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], base
+    )
     (Path(purelib.strip()) / "test_dependencies.pth").write_text(sysconfig.get_path("purelib") + "\n")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"HF_HUB_OFFLINE": "1"}
     return venv, env
@@ -63,16 +91,36 @@ def installed(tmp_path_factory) -> tuple[Path, dict]:
 
 def test_the_wheel_brings_its_own_code_and_card_template(installed, tmp_path):
     venv, env = installed
-    script = ("import lerobot_murm, lerobot_policy_murm; from importlib.resources import files; "
-              "print(lerobot_murm.__file__); print((files('lerobot_murm.publishing') / 'datasets_cards').is_dir())")
+    script = (
+        "import lerobot_murm, lerobot_policy_murm; from importlib.resources import files; "
+        "print(lerobot_murm.__file__); print((files('lerobot_murm.publishing') / 'datasets_cards').is_dir())"
+    )
     module, has_cards = run_command([venv / "bin" / "python", "-c", script], tmp_path, env).split()
     assert Path(module).is_relative_to(venv) and has_cards == "True"
 
 
 def test_the_installed_murm_collects_quietly_and_pushes_the_dataset_with_its_card(installed, tmp_path):
     venv, env = installed
-    out = run_command([venv / "bin" / "murm", "collect", "--task", "pick_up", "--root", tmp_path / "ds", "--episodes",
-                       "2", "--workers", "1", "--cameras", "side", "--image-size", "16"], tmp_path, env)
+    out = run_command(
+        [
+            venv / "bin" / "murm",
+            "collect",
+            "--task",
+            "pick_up",
+            "--root",
+            tmp_path / "ds",
+            "--episodes",
+            "2",
+            "--workers",
+            "1",
+            "--cameras",
+            "side",
+            "--image-size",
+            "16",
+        ],
+        tmp_path,
+        env,
+    )
     assert "2 episodes in" in out
     assert_quiet(out)  # a first run from a fresh install
 
@@ -100,8 +148,22 @@ def test_lerobot_eval_in_the_installed_environment_loads_a_murm_checkpoint(insta
     policy = build_policy(config, dataset, torch.device("cpu"))
     for part in (policy, *make_murm_pre_post_processors(policy.config)):  # what `murm train` saves
         part.save_pretrained(tmp_path / "ckpt")
-    run_command([venv / "bin" / "python", "-m", "lerobot.scripts.lerobot_eval", f"--policy.path={tmp_path / 'ckpt'}",
-                 "--env.type=murm", "--env.task=place_in_box", "--env.image_size=16", "--env.cameras=[global]",
-                 "--eval.n_episodes=1", "--eval.batch_size=1", f"--output_dir={tmp_path / 'eval'}"], tmp_path, env)
+    run_command(
+        [
+            venv / "bin" / "python",
+            "-m",
+            "lerobot.scripts.lerobot_eval",
+            f"--policy.path={tmp_path / 'ckpt'}",
+            "--env.type=murm",
+            "--env.task=place_in_box",
+            "--env.image_size=16",
+            "--env.cameras=[global]",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            f"--output_dir={tmp_path / 'eval'}",
+        ],
+        tmp_path,
+        env,
+    )
     overall = json.loads((tmp_path / "eval" / "eval_info.json").read_text())["overall"]
     assert overall["n_episodes"] == 1

@@ -90,8 +90,14 @@ def test_view_dropout_is_on_for_dropout_and_may_be_added_to_separated_q(tiny_pip
         torch.manual_seed(0)
         policy = build_policy(make_config(encoders, view_dropout=view_dropout), dataset, torch.device("cpu"))
         state = torch.randn(64, 2, 2 * policy.config.latent_dim)
-        transition = {"state": state, "next_state": state, "action": torch.zeros(64, policy.config.action_dim),
-                      "reward": torch.zeros(64), "done": torch.zeros(64), "keep": keep}
+        transition = {
+            "state": state,
+            "next_state": state,
+            "action": torch.zeros(64, policy.config.action_dim),
+            "reward": torch.zeros(64),
+            "done": torch.zeros(64),
+            "keep": keep,
+        }
         return policy.iql_loss(transition)[0].item()
 
     keep = camera_keep_mask(64, 2, 0.5, torch.Generator().manual_seed(0))  # the sampler draws it
@@ -109,10 +115,14 @@ def test_actor_scoped_dropout_hides_views_from_the_policy_only(tiny_pipeline, da
         torch.manual_seed(0)
         policy = build_policy(make_config(encoders, **overrides), dataset, torch.device("cpu"))
         state = torch.randn(64, 2, 2 * policy.config.latent_dim)
-        transition = {"state": state, "next_state": state.roll(1, 0),
-                      "action": torch.rand(64, policy.config.action_dim),
-                      "reward": torch.zeros(64), "done": torch.zeros(64),
-                      "keep": camera_keep_mask(64, 2, 0.5, torch.Generator().manual_seed(1))}
+        transition = {
+            "state": state,
+            "next_state": state.roll(1, 0),
+            "action": torch.rand(64, policy.config.action_dim),
+            "reward": torch.zeros(64),
+            "done": torch.zeros(64),
+            "keep": camera_keep_mask(64, 2, 0.5, torch.Generator().manual_seed(1)),
+        }
         return dict(zip(LOGGED, policy.iql_loss(transition)[1].tolist(), strict=True))
 
     no_dropout = logged_losses(view_dropout=False)
@@ -143,16 +153,23 @@ def test_the_epsilon_defaults_to_the_suggestion_murm_encode_wrote(tiny_pipeline)
     config = make_config(tiny_pipeline[1])
     assert config.epsilon is None  # read from the encoders when the settings are loaded
     config.load_encoder_settings()
-    expected = [json.loads((tiny_pipeline[1] / c / "latent_distance.json").read_text())["suggested_epsilon"]
-                for c in ("global", "adjacent")]
+    expected = [
+        json.loads((tiny_pipeline[1] / c / "latent_distance.json").read_text())["suggested_epsilon"]
+        for c in ("global", "adjacent")
+    ]
     assert config.epsilon == pytest.approx(expected)
 
 
 def lerobot_rows(policy: MurmPolicy, dataset: LeRobotDataset, batch_size: int = 16) -> dict:
     """A batch as lerobot-train hands it to the policy: LeRobot's sampler, loader and preprocessor."""
     meta = dataset.meta
-    sampler = EpisodeAwareSampler(meta.episodes["dataset_from_index"], meta.episodes["dataset_to_index"],
-                                  drop_n_last_frames=policy.config.drop_n_last_frames, shuffle=True, seed=0)
+    sampler = EpisodeAwareSampler(
+        meta.episodes["dataset_from_index"],
+        meta.episodes["dataset_to_index"],
+        drop_n_last_frames=policy.config.drop_n_last_frames,
+        shuffle=True,
+        seed=0,
+    )
     preprocessor, _ = make_pre_post_processors(policy.config, dataset_stats=meta.stats)
     return preprocessor(next(iter(torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler))))
 
@@ -255,8 +272,10 @@ def test_latent_statistics_standardise_the_networks_inputs(policy):
     assert normalised[:, 0, 0].abs().max() < 1e-5 and policy.latent_std[0, 0] == policy.config.latent_std_floor
 
 
-@pytest.mark.parametrize(("method", "cameras"), [("single", ["global"]), ("concat", ["global", "adjacent"]),
-                                                  ("separated_q", ["global", "adjacent"])])
+@pytest.mark.parametrize(
+    ("method", "cameras"),
+    [("single", ["global"]), ("concat", ["global", "adjacent"]), ("separated_q", ["global", "adjacent"])],
+)
 def test_widths_follow_the_papers_128_units_per_camera(tiny_pipeline, dataset, method, cameras):
     """Paper 5.1: V, the policy and the single Q are 128 units per camera; each separated Q
     head is 128 (4.3). width_per_camera=False keeps every network 128 wide."""
@@ -292,8 +311,14 @@ def test_separated_q_can_leave_a_dropped_cameras_q_out_of_the_mean(tiny_pipeline
     torch.testing.assert_close(masked[:, 0::2], first_only[:, 0::2])
     torch.testing.assert_close(masked[:, 1::2], second_only[:, 1::2])
     torch.testing.assert_close(mean, (first_only + second_only) / 2)
-    transition = {"state": state, "next_state": state.roll(1, 0), "action": action,
-                  "reward": torch.zeros(8), "done": torch.zeros(8), "keep": keep}
+    transition = {
+        "state": state,
+        "next_state": state.roll(1, 0),
+        "action": action,
+        "reward": torch.zeros(8),
+        "done": torch.zeros(8),
+        "keep": keep,
+    }
     loss, _ = policy.iql_loss(transition)
     assert torch.isfinite(loss)
 

@@ -26,8 +26,18 @@ pytestmark = pytest.mark.slow
 
 
 def lerobot_eval(checkpoint: Path, out: Path, *extra: str) -> dict:
-    run_command([BIN / "lerobot-eval", f"--policy.path={checkpoint}", *ENV_ARGS, "--eval.n_episodes=2",
-                 "--eval.batch_size=2", f"--output_dir={out}", *extra], cwd=out.parent)
+    run_command(
+        [
+            BIN / "lerobot-eval",
+            f"--policy.path={checkpoint}",
+            *ENV_ARGS,
+            "--eval.n_episodes=2",
+            "--eval.batch_size=2",
+            f"--output_dir={out}",
+            *extra,
+        ],
+        cwd=out.parent,
+    )
     return json.loads((out / "eval_info.json").read_text())["overall"]
 
 
@@ -35,8 +45,14 @@ def train_config(tiny_pipeline, tmp_path: Path, method: str, **fields) -> Path:
     """A `murm train` YAML on the tiny pipeline, writing under tmp_path/run."""
     root, encoders = tiny_pipeline
     policy = {"type": "murm", "method": method, "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
-    config = {"dataset": str(root), "task": "place_in_box", "output_dir": str(tmp_path / "run"),
-              "cache_dir": str(tmp_path / "cache"), **fields, "policy": policy}
+    config = {
+        "dataset": str(root),
+        "task": "place_in_box",
+        "output_dir": str(tmp_path / "run"),
+        "cache_dir": str(tmp_path / "cache"),
+        **fields,
+        "policy": policy,
+    }
     path = tmp_path / "train.yaml"
     path.write_text(yaml.safe_dump(config, sort_keys=False))
     return path
@@ -44,24 +60,54 @@ def train_config(tiny_pipeline, tmp_path: Path, method: str, **fields) -> Path:
 
 def test_lerobot_train_evaluates_in_the_simulator_and_lerobot_eval_loads_its_checkpoint(tiny_pipeline, tmp_path):
     root, encoders = tiny_pipeline
-    log = run_command([
-        BIN / "lerobot-train", "--policy.type=murm", "--policy.method=dropout", f"--policy.cameras={CAMERAS}",
-        f"--policy.encoder_dir={encoders}", "--dataset.repo_id=local/place_in_box", f"--dataset.root={root}",
-        *ENV_ARGS, "--steps=4", "--batch_size=4", "--env_eval_freq=4", "--eval.n_episodes=1", "--eval.batch_size=1",
-        "--save_freq=4", "--log_freq=1", f"--output_dir={tmp_path / 'run'}", "--num_workers=0", "--wandb.enable=false",
-    ], cwd=tmp_path)
+    log = run_command(
+        [
+            BIN / "lerobot-train",
+            "--policy.type=murm",
+            "--policy.method=dropout",
+            f"--policy.cameras={CAMERAS}",
+            f"--policy.encoder_dir={encoders}",
+            "--dataset.repo_id=local/place_in_box",
+            f"--dataset.root={root}",
+            *ENV_ARGS,
+            "--steps=4",
+            "--batch_size=4",
+            "--env_eval_freq=4",
+            "--eval.n_episodes=1",
+            "--eval.batch_size=1",
+            "--save_freq=4",
+            "--log_freq=1",
+            f"--output_dir={tmp_path / 'run'}",
+            "--num_workers=0",
+            "--wandb.enable=false",
+        ],
+        cwd=tmp_path,
+    )
     assert "critic_loss" in log and "actor_loss" in log and "value_loss" in log
     assert "pc_success" in log  # the evaluation in the simulator ran during training
     checkpoint = tmp_path / "run" / "checkpoints" / "last" / "pretrained_model"
     config = json.loads((checkpoint / "config.json").read_text())
-    assert config["type"] == "murm" and config["method"] == "dropout" and set(config["encoders"]) == {"global", "adjacent"}
+    assert (
+        config["type"] == "murm" and config["method"] == "dropout" and set(config["encoders"]) == {"global", "adjacent"}
+    )
     overall = lerobot_eval(checkpoint, tmp_path / "eval", "--policy.eval_mask_p=0.5")
     assert overall["n_episodes"] == 2 and 0.0 <= overall["pc_success"] <= 100.0
 
 
 def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resumes(tiny_pipeline, tmp_path):
-    config = train_config(tiny_pipeline, tmp_path, "separated_q", steps=6, batch_size=32, log_every=2, eval_every=3,
-                          eval_episodes=1, final_eval_episodes=2, eval_mask_p=[0.0, 0.5], eval_envs=1)
+    config = train_config(
+        tiny_pipeline,
+        tmp_path,
+        "separated_q",
+        steps=6,
+        batch_size=32,
+        log_every=2,
+        eval_every=3,
+        eval_episodes=1,
+        final_eval_episodes=2,
+        eval_mask_p=[0.0, 0.5],
+        eval_envs=1,
+    )
     out = run_command([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     assert "masking 50%: success" in out
     assert_quiet(out)
@@ -70,8 +116,14 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
         assert (run_dir / name).exists(), name
     with (run_dir / "eval.csv").open() as f:
         evals = [(int(r["step"]), float(r["mask_p"]), r["split"]) for r in csv.DictReader(f)]
-    assert evals == [(3, 0.0, "validation"), (3, 0.5, "validation"), (6, 0.0, "validation"), (6, 0.5, "validation"),
-                     (6, 0.0, "test"), (6, 0.5, "test")]  # the learning curve on validation seeds, then the test
+    assert evals == [
+        (3, 0.0, "validation"),
+        (3, 0.5, "validation"),
+        (6, 0.0, "validation"),
+        (6, 0.5, "validation"),
+        (6, 0.0, "test"),
+        (6, 0.5, "test"),
+    ]  # the learning curve on validation seeds, then the test
     summary = json.loads((run_dir / "final_eval.json").read_text())
     assert [r["episodes"] for r in summary["final"]] == [2, 2]
     assert summary["validation_seeds"] == [200_000, 200_001] and summary["eval_seeds"] == [300_000, 300_001]
@@ -89,8 +141,13 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
         assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]
     assert json.loads((run_dir / "final_eval.json").read_text())["wall_s"] > 1000  # every sitting counts
     assert json.loads((run_dir / "final_eval_6.json").read_text()) == summary
-    fewer = subprocess.run([str(BIN / "murm"), "train", "--config", str(config), "--steps=4"], cwd=tmp_path,
-                           capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    fewer = subprocess.run(
+        [str(BIN / "murm"), "train", "--config", str(config), "--steps=4"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+    )
     assert fewer.returncode != 0 and "is trained to 8 steps, more than the 4 asked" in fewer.stderr
     assert "Traceback" not in fewer.stderr
 
@@ -100,11 +157,19 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
 
 def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoint(tiny_pipeline, tmp_path):
     """Ctrl-C in a terminal or `pkill -f murm` signal the simulator workers as well as the trainer."""
-    config = train_config(tiny_pipeline, tmp_path, "concat", steps=1_000_000, batch_size=8, log_every=2,
-                          eval_every=1_000_000, eval_envs=2)
+    config = train_config(
+        tiny_pipeline, tmp_path, "concat", steps=1_000_000, batch_size=8, log_every=2, eval_every=1_000_000, eval_envs=2
+    )
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
-    trainer = subprocess.Popen([str(BIN / "murm"), "train", "--config", str(config)], cwd=tmp_path, env=env,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    trainer = subprocess.Popen(
+        [str(BIN / "murm"), "train", "--config", str(config)],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     log = tmp_path / "run" / "log.csv"
     while not log.exists() and trainer.poll() is None:  # the workers exist before the first logged step
         time.sleep(0.2)
@@ -134,7 +199,9 @@ def test_validation_and_test_seeds_must_be_disjoint(tiny_pipeline, tmp_path):
     assert load_train_config(config).test_seed == 300_000
     with pytest.raises(Exception) as error:  # draccus wraps the config's ValueError
         load_train_config(config, ["--validation_seed=300050"])
-    assert "validation seeds 300050-300149 and test seeds 300000-300099 must be" in str(error.value.__cause__ or error.value)
+    assert "validation seeds 300050-300149 and test seeds 300000-300099 must be" in str(
+        error.value.__cause__ or error.value
+    )
 
 
 def _parameters(checkpoint: Path) -> dict[str, torch.Tensor]:
@@ -147,14 +214,37 @@ def test_seeds_trained_side_by_side_write_what_each_would_alone_and_a_lagging_se
     """`murm train --seeds=[0,1]`: seed 1 stacked against seed 1 alone (fp32), per-seed folders
     in the lone format (lerobot-eval loads them), and a seed that a stop left behind (seed 0,
     trained alone to step 4 here) trains on its own until the other catches up."""
-    fields = dict(steps=8, batch_size=16, log_every=1, eval_every=4, eval_episodes=1, final_eval_episodes=1, eval_envs=1)
+    fields = {
+        "steps": 8,
+        "batch_size": 16,
+        "log_every": 1,
+        "eval_every": 4,
+        "eval_episodes": 1,
+        "final_eval_episodes": 1,
+        "eval_envs": 1,
+    }
     config = train_config(tiny_pipeline, tmp_path, "separated_q", **fields)
     policy = ["--policy.precision=fp32", "--policy.view_dropout=true"]
-    run_command([BIN / "murm", "train", "--config", config, *policy, "--seed=1", f"--output_dir={tmp_path / 'alone'}"],
-                cwd=tmp_path)
-    run_command([BIN / "murm", "train", "--config", config, *policy, "--seed=0", "--steps=4",
-                 f"--output_dir={tmp_path / 'run' / 'seed0'}"], cwd=tmp_path)
-    out = run_command([BIN / "murm", "train", "--config", config, *policy, "--seeds=[0,1]", "--stack=true"], cwd=tmp_path)
+    run_command(
+        [BIN / "murm", "train", "--config", config, *policy, "--seed=1", f"--output_dir={tmp_path / 'alone'}"],
+        cwd=tmp_path,
+    )
+    run_command(
+        [
+            BIN / "murm",
+            "train",
+            "--config",
+            config,
+            *policy,
+            "--seed=0",
+            "--steps=4",
+            f"--output_dir={tmp_path / 'run' / 'seed0'}",
+        ],
+        cwd=tmp_path,
+    )
+    out = run_command(
+        [BIN / "murm", "train", "--config", config, *policy, "--seeds=[0,1]", "--stack=true"], cwd=tmp_path
+    )
     assert "resuming from step 4" in out and "training seeds 0, 1 side by side from step 4" in out
 
     alone, stacked = tmp_path / "alone", tmp_path / "run" / "seed1"
@@ -173,11 +263,27 @@ def test_seeds_trained_side_by_side_write_what_each_would_alone_and_a_lagging_se
 
 
 def test_seeds_side_by_side_killed_with_sigkill_resume_every_seed(tiny_pipeline, tmp_path):
-    config = train_config(tiny_pipeline, tmp_path, "dropout", steps=60, batch_size=8, log_every=5, eval_every=20,
-                          eval_episodes=1, final_eval_episodes=1, eval_envs=1)
+    config = train_config(
+        tiny_pipeline,
+        tmp_path,
+        "dropout",
+        steps=60,
+        batch_size=8,
+        log_every=5,
+        eval_every=20,
+        eval_episodes=1,
+        final_eval_episodes=1,
+        eval_envs=1,
+    )
     command = [str(BIN / "murm"), "train", "--config", str(config), "--seeds=[0,1]"]
-    trainer = subprocess.Popen(command, cwd=tmp_path, env={**os.environ, "HF_HUB_OFFLINE": "1"},
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    trainer = subprocess.Popen(
+        command,
+        cwd=tmp_path,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     states = [tmp_path / "run" / f"seed{s}" / "checkpoints" / "last" / "training_state.pt" for s in (0, 1)]
 
     def checkpointed_step(path: Path) -> int:

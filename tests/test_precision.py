@@ -56,8 +56,10 @@ def loss_and_gradients(policy: MurmPolicy, batch: dict) -> tuple[torch.Tensor, d
     policy.zero_grad(set_to_none=True)
     loss, _ = policy.forward(batch)
     loss.backward()
-    gradients = {name: torch.cat([p.grad.flatten() for p in getattr(policy, name).parameters()])
-                 for name in ("critic", "value", "actor")}
+    gradients = {
+        name: torch.cat([p.grad.flatten() for p in getattr(policy, name).parameters()])
+        for name in ("critic", "value", "actor")
+    }
     return loss.detach(), gradients
 
 

@@ -76,8 +76,9 @@ def test_a_grid_simulates_only_the_largest_collection_of_a_recipe(tmp_path, monk
 
     simulated = []
     real_collect = reproduce.collect
-    monkeypatch.setattr(reproduce, "collect",
-                        lambda c, donors: simulated.append((c.root.name, c.resume)) or real_collect(c, donors))
+    monkeypatch.setattr(
+        reproduce, "collect", lambda c, donors: simulated.append((c.root.name, c.resume)) or real_collect(c, donors)
+    )
     datasets = tmp_path / "datasets"
     collect(config(datasets / "two", 2))  # finished before: the four-episode collection carries it on
     wanted = [config(datasets / name, n) for name, n in (("one", 1), ("four", 4), ("three", 3))]
@@ -118,11 +119,13 @@ def test_a_grid_collects_the_clean_and_noisy_donors_before_the_partly_noisy_coll
 
     built = []
     real_collect = reproduce.collect
-    monkeypatch.setattr(reproduce, "collect",
-                        lambda c, donors: built.append((c.root.name, sorted(donors))) or real_collect(c, donors))
+    monkeypatch.setattr(
+        reproduce, "collect", lambda c, donors: built.append((c.root.name, sorted(donors))) or real_collect(c, donors)
+    )
     datasets = tmp_path / "datasets"
-    wanted = [config(datasets / name, 5, noisy_fraction=f)
-              for name, f in (("quarter", 0.25), ("clean", 0.0), ("noisy", 1.0))]
+    wanted = [
+        config(datasets / name, 5, noisy_fraction=f) for name, f in (("quarter", 0.25), ("clean", 0.0), ("noisy", 1.0))
+    ]
     build_datasets(SerialExecutor(), wanted, workers=1)
     assert built == [("clean", []), ("noisy", []), ("quarter", [False, True])]
     collect(config(tmp_path / "direct" / "quarter", 5, noisy_fraction=0.25))

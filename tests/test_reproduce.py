@@ -24,9 +24,17 @@ from stored_run import stored_run
 REPO = Path(__file__).parents[1]
 MURM = Path(sys.executable).parent / "murm"
 TINY = [
-    "--collection.episodes=4", "--collection.image_size=16", "--vqvae.steps=20", "--vqvae.batch_size=16",
-    "--train.steps=20", "--train.log_every=10", "--train.eval_every=10", "--train.eval_episodes=1",
-    "--train.final_eval_episodes=2", "--train.eval_envs=1", "--train.batch_size=32",
+    "--collection.episodes=4",
+    "--collection.image_size=16",
+    "--vqvae.steps=20",
+    "--vqvae.batch_size=16",
+    "--train.steps=20",
+    "--train.log_every=10",
+    "--train.eval_every=10",
+    "--train.eval_episodes=1",
+    "--train.final_eval_episodes=2",
+    "--train.eval_envs=1",
+    "--train.batch_size=32",
 ]
 
 
@@ -42,8 +50,14 @@ def murm(args: list[str], cwd: Path) -> str:
 @pytest.mark.slow
 @pytest.mark.timeout(1800)  # the real-size smoke grid: ~7 min alone
 def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
-    args = ["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), f"--work_dir={tmp_path / 'work'}",
-            f"--results_dir={tmp_path / 'results'}", *TINY]
+    args = [
+        "reproduce",
+        "--config",
+        str(REPO / "configs/reproduce/smoke.yaml"),
+        f"--work_dir={tmp_path / 'work'}",
+        f"--results_dir={tmp_path / 'results'}",
+        *TINY,
+    ]
     out = murm(args, tmp_path)
     assert "| single-global | 50% |" in out and "| separated_q-global+adjacent | 0% |" in out
     # progress: the numbers of the grid's reported split (a choosing grid shows no test numbers), the time left
@@ -55,8 +69,10 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     assert runs == ["place_in_box__separated_q-global+adjacent__seed0.json", "place_in_box__single-global__seed0.json"]
     result = json.loads((results / "runs" / runs[0]).read_text())
     assert [r["episodes"] for r in result["final"]] == [2, 2] and result["steps"] == 20
-    validation, test = range(result["validation_seeds"][0], result["validation_seeds"][1] + 1), \
-        range(result["eval_seeds"][0], result["eval_seeds"][1] + 1)
+    validation, test = (
+        range(result["validation_seeds"][0], result["validation_seeds"][1] + 1),
+        range(result["eval_seeds"][0], result["eval_seeds"][1] + 1),
+    )
     assert len(test) == 2 and not set(validation) & set(test)
     assert [r["episodes"] for r in result["final_validation"]] == [2, 2]
     assert 0.0 <= result["demonstration_success"] <= 1.0
@@ -84,7 +100,9 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     torn = results / "runs" / "place_in_box__single-global__seed1.json"
     whole = json.loads(torn.read_text())
     torn.write_text(torn.read_text()[:100])
-    out = murm(["report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="], tmp_path)
+    out = murm(
+        ["report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="], tmp_path
+    )
     assert f"{torn} does not read (torn?): left out" in out
     out = murm([*args, "--seeds=[1]"], tmp_path)
     assert "place_in_box__single-global__seed1.json: it does not read (torn)" in out
@@ -96,7 +114,9 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     smoke = yaml.safe_load((REPO / "configs/reproduce/smoke.yaml").read_text())
     single = next(cell for cell in smoke["cells"] if cell["method"] == "single")
     other = tmp_path / "other.yaml"
-    other.write_text(yaml.safe_dump(smoke | {"name": "other", "cells": [single | {"eval_mask_p": [0.0], "label": "global-only"}]}))
+    other.write_text(
+        yaml.safe_dump(smoke | {"name": "other", "cells": [single | {"eval_mask_p": [0.0], "label": "global-only"}]})
+    )
     murm(["reproduce", "--config", str(other), *args[3:]], tmp_path)  # the same TINY sizes as smoke
     assert not (tmp_path / "work" / "runs" / "other").exists()
     reused = json.loads((tmp_path / "results/other/runs/place_in_box__global-only__seed0.json").read_text())
@@ -111,7 +131,9 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
     out = murm(["reproduce", "--config", str(timed), *args[3:], "--jobs", "2"], tmp_path)
     assert "timed times its runs: they train one at a time" in out
     assert (tmp_path / "work" / "runs" / "timed").exists()
-    assert "reused_from" not in json.loads((tmp_path / "results/timed/runs/place_in_box__single-global__seed0.json").read_text())
+    assert "reused_from" not in json.loads(
+        (tmp_path / "results/timed/runs/place_in_box__single-global__seed0.json").read_text()
+    )
 
     # the encoders are kept beside the results: with the work dir's encoders gone (a fresh machine), the
     # next grid copies them back instead of training another draw, and its runs record the same weights
@@ -123,12 +145,14 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
 
     # a cell with other demonstrations (Table 7) collects them but encodes them with the task's encoders
     fewer = tmp_path / "fewer.yaml"
-    fewer.write_text(yaml.safe_dump(smoke | {"name": "fewer", "cells": [single | {"episodes": 3, "label": "demos3",
-                                                                            "steps": 30}]}))
+    fewer.write_text(
+        yaml.safe_dump(smoke | {"name": "fewer", "cells": [single | {"episodes": 3, "label": "demos3", "steps": 30}]})
+    )
     murm(["reproduce", "--config", str(fewer), *args[3:]], tmp_path)
     encoder = next(kept.glob("*/global"))  # copied back, not trained again (a new training has its own train_seconds)
-    assert (tmp_path / "work" / "vqvae" / encoder.parent.name / "global" / "metrics.json").read_text() == \
-        (encoder / "metrics.json").read_text()
+    assert (tmp_path / "work" / "vqvae" / encoder.parent.name / "global" / "metrics.json").read_text() == (
+        encoder / "metrics.json"
+    ).read_text()
     datasets = sorted(p.name for p in (tmp_path / "work" / "datasets").iterdir())
     assert len(datasets) == 2 and any("-3ep-" in name for name in datasets)
     assert len(list((tmp_path / "work" / "vqvae").iterdir())) == 1  # no second set of encoders
@@ -217,8 +241,13 @@ def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuse
     runs.mkdir(parents=True)
     final = [{"mask_p": 0.0, "success_rate": 0.5, "episodes": 100}]
     encoders = {"global": "0123456789abcdef"}
-    stored = {"final": final, "curve": [], "validation_seeds": [200_000, 200_099], "recipe": on_another_machine,
-              "encoders": encoders}
+    stored = {
+        "final": final,
+        "curve": [],
+        "validation_seeds": [200_000, 200_099],
+        "recipe": on_another_machine,
+        "encoders": encoders,
+    }
     (runs / "place_in_box__single-global__seed0.json").write_text(json.dumps(stored))
     assert finished_elsewhere(table3, recipe, [0.0], encoders) is None
     (runs / "place_in_box__single-global__seed0.json").write_text(json.dumps(stored | {"recipe": recipe}))
@@ -232,8 +261,10 @@ def test_an_encoder_stage_stopped_midway_keeps_the_encoders_it_finished(tmp_path
     from lerobot_murm.experiments import reproduce as driver
     from lerobot_murm.experiments.executors import SerialExecutor
 
-    config = load_reproduce_config(REPO / "configs/reproduce/table6.yaml",
-                                   [f"--results_dir={tmp_path / 'results'}", f"--work_dir={tmp_path / 'work'}"])
+    config = load_reproduce_config(
+        REPO / "configs/reproduce/table6.yaml",
+        [f"--results_dir={tmp_path / 'results'}", f"--work_dir={tmp_path / 'work'}"],
+    )
     root = driver.encoder_root(config, "place_in_box")
 
     def train_one(config, root, camera):  # stands in for a VQ-VAE training: a finished encoder's files
@@ -243,8 +274,9 @@ def test_an_encoder_stage_stopped_midway_keeps_the_encoders_it_finished(tmp_path
         out.mkdir(parents=True)
         (out / "config.json").write_text("{}")
         (out / "model.safetensors").write_bytes(camera.encode())
-        (out / "metrics.json").write_text(json.dumps({"interrupted": False,
-                                                      "steps": driver.encoder_steps(config, camera)}))
+        (out / "metrics.json").write_text(
+            json.dumps({"interrupted": False, "steps": driver.encoder_steps(config, camera)})
+        )
 
     monkeypatch.setattr(driver, "ensure_encoder", train_one)
     with pytest.raises(RuntimeError, match="the sitting ended"):
@@ -328,8 +360,16 @@ def test_the_smoke_single_view_cell_learns_a_policy_that_beats_random_actions(tm
     config["cells"] = [cell | {"eval_mask_p": [0.0]} for cell in config["cells"] if cell["method"] == "single"]
     config["train"]["eval_every"] = config["train"]["steps"]  # learning is checked at the end only
     (tmp_path / "smoke_single.yaml").write_text(yaml.safe_dump(config))
-    murm(["reproduce", "--config", str(tmp_path / "smoke_single.yaml"), f"--work_dir={tmp_path / 'work'}",
-          f"--results_dir={tmp_path / 'results'}"], tmp_path)
+    murm(
+        [
+            "reproduce",
+            "--config",
+            str(tmp_path / "smoke_single.yaml"),
+            f"--work_dir={tmp_path / 'work'}",
+            f"--results_dir={tmp_path / 'results'}",
+        ],
+        tmp_path,
+    )
     result = json.loads((tmp_path / "results/smoke/runs/place_in_box__single-global__seed0.json").read_text())
     learned = result["final"][0]
     assert learned["mask_p"] == 0.0
@@ -344,10 +384,15 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
 
     grid = tmp_path / "results" / "table3"
     (grid / "runs").mkdir(parents=True)
-    config = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", ["--tasks=[place_in_box,pick_up]", "--seeds=[0]"])
+    config = load_reproduce_config(
+        REPO / "configs/reproduce/table3.yaml", ["--tasks=[place_in_box,pick_up]", "--seeds=[0]"]
+    )
     draccus.dump(config, (grid / "config.yaml").open("w"))
     top = {"recipe": {"precision": "torch.bfloat16"}, "encoders": {"top": "3a2b1039f7cb38bb"}}
-    for cell, reused in (("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}), ("single-top", top)):
+    for cell, reused in (
+        ("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}),
+        ("single-top", top),
+    ):
         run = stored_run("pick_up", cell, "single", [cell.split("-")[1]], **reused)
         (grid / "runs" / f"pick_up__{cell}__seed0.json").write_text(json.dumps(run))
     (grid / "discussion.md").write_text("Top beats nothing here.\n")
@@ -367,8 +412,10 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     from lerobot_murm.experiments.report import update_readme
 
     readme = tmp_path / "README.md"
-    readme.write_text("# x\n<!-- results:table3 -->\nSTALE TABLE\n<!-- /results:table3 -->\n<!-- results:table9 -->\nkept\n"
-                      "<!-- /results:table9 -->\nend\n")
+    readme.write_text(
+        "# x\n<!-- results:table3 -->\nSTALE TABLE\n<!-- /results:table3 -->\n<!-- results:table9 -->\nkept\n"
+        "<!-- /results:table9 -->\nend\n"
+    )
     assert update_readme(tmp_path / "results", readme) == ["table3"]
     text = readme.read_text()
     assert "STALE TABLE" not in text and "| single-top | 0% | - (18.8) | 50 (0.2) |" in text
@@ -381,11 +428,16 @@ def test_the_time_table_compares_each_run_with_the_baseline_on_its_own_machine()
     from lerobot_murm.experiments.report import time_table
 
     fast, slow = "Xeon, native bf16, 2 torch threads", "EPYC, no native bf16, 2 torch threads"
-    runs = [{"task": "place_in_box", "cell": cell, "seed": seed, "hardware": hardware, "train_steps_per_s": sps}
-            for cell, seed, hardware, sps in (
-                ("single-global", 0, fast, 100.0), ("single-global", 1, slow, 20.0),
-                ("separated_q-global+adjacent", 0, fast, 50.0), ("separated_q-global+adjacent", 1, slow, 5.0),
-                ("dropout-global+adjacent", 0, "a third CPU", 40.0))]
+    runs = [
+        {"task": "place_in_box", "cell": cell, "seed": seed, "hardware": hardware, "train_steps_per_s": sps}
+        for cell, seed, hardware, sps in (
+            ("single-global", 0, fast, 100.0),
+            ("single-global", 1, slow, 20.0),
+            ("separated_q-global+adjacent", 0, fast, 50.0),
+            ("separated_q-global+adjacent", 1, slow, 5.0),
+            ("dropout-global+adjacent", 0, "a third CPU", 40.0),
+        )
+    ]
     table = time_table(runs, TABLE5)
     assert "| place_in_box | single-global | 60.0 | 1.00 | 2 | 2 | 1.00 |" in table
     # 100 / 50 on one machine and 20 / 5 on the other: (2 + 4) / 2, not 60 / 27.5
@@ -397,8 +449,16 @@ def test_the_time_table_compares_each_run_with_the_baseline_on_its_own_machine()
 def test_a_grid_without_a_paper_table_gets_no_paper_columns(tmp_path):
     from lerobot_murm.experiments.report import comparison, plot_against_paper
 
-    rows = [{"task": "pick_up", "cell": "single-global", "mask_p": "0.0", "success_mean": "56.0", "success_std": "",
-             "seeds": "1"}]
+    rows = [
+        {
+            "task": "pick_up",
+            "cell": "single-global",
+            "mask_p": "0.0",
+            "success_mean": "56.0",
+            "success_std": "",
+            "seeds": "1",
+        }
+    ]
     ours = comparison("updates", rows)
     assert plot_against_paper("table3", rows, ("pick_up",), tmp_path / "table3.png")
     assert not plot_against_paper("updates", rows, ("pick_up",), tmp_path / "updates.png")  # no paper table
@@ -413,10 +473,18 @@ def test_a_choosing_grid_reports_validation_episodes_and_never_the_test_ones():
     from lerobot_murm.experiments.results import aggregate
 
     def run(seed: int, validation: float, test: float) -> dict:
-        return {"task": "place_in_box", "cell": "c", "method": "single", "cameras": ["global"], "seed": seed,
-                "steps": 10, "wall_s": 1.0, "train_steps_per_s": 1.0,
-                "final": [{"mask_p": 0.0, "success_rate": test, "episodes": 100}],
-                "final_validation": [{"mask_p": 0.0, "success_rate": validation, "episodes": 100}]}
+        return {
+            "task": "place_in_box",
+            "cell": "c",
+            "method": "single",
+            "cameras": ["global"],
+            "seed": seed,
+            "steps": 10,
+            "wall_s": 1.0,
+            "train_steps_per_s": 1.0,
+            "final": [{"mask_p": 0.0, "success_rate": test, "episodes": 100}],
+            "final_validation": [{"mask_p": 0.0, "success_rate": validation, "episodes": 100}],
+        }
 
     runs = [run(0, 0.5, 0.9), run(1, 0.7, 0.1)]
     (validation,), (test,) = aggregate(runs, "validation"), aggregate(runs)
@@ -446,22 +514,28 @@ def test_table2_runs_the_papers_epsilons_mapped_to_our_encoders_scale(tiny_pipel
     assert scales["epsilon_paper_scale"][0] == pytest.approx(2.0, abs=1e-3)
     assert 0 <= scales["epsilon_quantile"][0] <= 1 and scales["epsilon_quantile"][1] >= 0
 
-    median = load_reproduce_config(REPO / "configs/reproduce/table2.yaml", [
-        "--cells=[{method: single, cameras: [global], epsilon_quantile: [0.5], label: median}]"]).cells[0]
+    median = load_reproduce_config(
+        REPO / "configs/reproduce/table2.yaml",
+        ["--cells=[{method: single, cameras: [global], epsilon_quantile: [0.5], label: median}]"],
+    ).cells[0]
     assert cell_epsilon(median, encoders) == pytest.approx([random["p50"]], rel=1e-6)
     # the share of random frames' distances under the median: 0.5 up to the ties of a tiny encoder's
     # distances (blurred 16x16 images give many equal ones)
-    assert epsilon_scales(cell_epsilon(median, encoders), ["global"], encoders)["epsilon_quantile"] == \
-        [pytest.approx(0.5, abs=0.05)]
+    assert epsilon_scales(cell_epsilon(median, encoders), ["global"], encoders)["epsilon_quantile"] == [
+        pytest.approx(0.5, abs=0.05)
+    ]
 
 
-@pytest.mark.parametrize("fields, error", [
-    ({"epsilon": [1.0], "paper_epsilon": [2.0]}, "set one of epsilon, paper_epsilon, epsilon_quantile"),
-    ({"paper_epsilon": [2.0, 3.0]}, "2 paper_epsilon values for 1 cameras"),
-    ({"epsilon_quantile": [1.5]}, "epsilon_quantile values must be in (0, 1)"),
-    ({"paper_epsilon": [0.0]}, "epsilon values must be positive"),
-    ({"steps": 0}, "steps must be at least 1, got 0"),
-])
+@pytest.mark.parametrize(
+    "fields, error",
+    [
+        ({"epsilon": [1.0], "paper_epsilon": [2.0]}, "set one of epsilon, paper_epsilon, epsilon_quantile"),
+        ({"paper_epsilon": [2.0, 3.0]}, "2 paper_epsilon values for 1 cameras"),
+        ({"epsilon_quantile": [1.5]}, "epsilon_quantile values must be in (0, 1)"),
+        ({"paper_epsilon": [0.0]}, "epsilon values must be positive"),
+        ({"steps": 0}, "steps must be at least 1, got 0"),
+    ],
+)
 def test_a_cell_with_a_bad_epsilon_is_refused_with_one_line(fields, error):
     from lerobot_murm.experiments.configuration_reproduce import CellSpec
 
@@ -476,11 +550,22 @@ def test_the_table2_report_says_on_which_scale_each_epsilon_is(tmp_path):
 
     grid = tmp_path / "results" / "table2"
     (grid / "runs").mkdir(parents=True)
-    draccus.dump(load_reproduce_config(REPO / "configs/reproduce/table2.yaml", ["--seeds=[0]"]), (grid / "config.yaml").open("w"))
-    for cell, epsilon, paper, quantile in (("single-global-paper-eps0.1", 0.23, 0.1, 0.004),
-                                          ("single-global-paper-eps2", 4.6, 2.0, 0.31)):
-        run = stored_run("place_in_box", cell, "single", ["global"], epsilon=[epsilon], epsilon_paper_scale=[paper],
-                         epsilon_quantile=[quantile])
+    draccus.dump(
+        load_reproduce_config(REPO / "configs/reproduce/table2.yaml", ["--seeds=[0]"]), (grid / "config.yaml").open("w")
+    )
+    for cell, epsilon, paper, quantile in (
+        ("single-global-paper-eps0.1", 0.23, 0.1, 0.004),
+        ("single-global-paper-eps2", 4.6, 2.0, 0.31),
+    ):
+        run = stored_run(
+            "place_in_box",
+            cell,
+            "single",
+            ["global"],
+            epsilon=[epsilon],
+            epsilon_paper_scale=[paper],
+            epsilon_quantile=[quantile],
+        )
         (grid / "runs" / f"place_in_box__{cell}__seed0.json").write_text(json.dumps(run))
     report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
     assert "| single-global-paper-eps0.1 | 0% | 50.0 (n=1) | 29.0 |" in report
@@ -511,8 +596,9 @@ def test_table2_reports_the_spread_over_seeds_during_training(tmp_path):
     runs.mkdir(parents=True)
     for seed, successes in enumerate(((0.1, 0.3), (0.3, 0.3), (0.2, 0.6))):
         curve = [[5000, 0.0, successes[0]], [5000, 0.5, 0.0], [10000, 0.0, successes[1]]]
-        (runs / f"s{seed}.json").write_text(json.dumps({"task": "place_in_box", "cell": "single-global-paper-eps2",
-                                                          "curve": curve}))
+        (runs / f"s{seed}.json").write_text(
+            json.dumps({"task": "place_in_box", "cell": "single-global-paper-eps2", "curve": curve})
+        )
     # std over seeds at 5,000 updates: 10 points; at 10,000: 17.32; their mean 13.66
     table = training_spread(tmp_path / "table2", {"single-global-paper-eps2": 2.97})
     assert "| place_in_box | single-global-paper-eps2 | 13.66 | 3 | 2.97 |" in table
@@ -523,9 +609,15 @@ def test_a_cells_seeds_train_as_one_job_unless_stacking_is_off():
     from lerobot_murm.experiments.reproduce import training_jobs
 
     single, separated = CellSpec("single", ["global"]), CellSpec("separated_q", ["global", "adjacent"])
-    todo = [("grid", "place_in_box", single, 0), ("grid", "place_in_box", separated, 0),
-            ("grid", "place_in_box", single, 2), ("grid", "pick_up", single, 1)]
+    todo = [
+        ("grid", "place_in_box", single, 0),
+        ("grid", "place_in_box", separated, 0),
+        ("grid", "place_in_box", single, 2),
+        ("grid", "pick_up", single, 1),
+    ]
     assert [(task, cell.label, seeds) for _, task, cell, seeds in training_jobs(todo, together=True)] == [
-        ("place_in_box", "single-global", [0, 2]), ("place_in_box", "separated_q-global+adjacent", [0]),
-        ("pick_up", "single-global", [1])]
+        ("place_in_box", "single-global", [0, 2]),
+        ("place_in_box", "separated_q-global+adjacent", [0]),
+        ("pick_up", "single-global", [1]),
+    ]
     assert [seeds for *_, seeds in training_jobs(todo, together=False)] == [[0], [0], [2], [1]]

@@ -43,8 +43,16 @@ def make_policies(seeds: list[int], method: str = "separated_q", **fields) -> li
     cameras = CAMERAS[:1] if method == "single" else CAMERAS
     encoders = {c: asdict(VQVAEConfig(**asdict(ENCODER) | {"camera": c})) for c in cameras}
     image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 16, 16))
-    config = MurmConfig(method=method, cameras=cameras, encoders=encoders, epsilon=[2.0] * len(cameras),
-                        hidden_units=16, precision="fp32", device="cpu", **fields)
+    config = MurmConfig(
+        method=method,
+        cameras=cameras,
+        encoders=encoders,
+        epsilon=[2.0] * len(cameras),
+        hidden_units=16,
+        precision="fp32",
+        device="cpu",
+        **fields,
+    )
     config.input_features = {k: image for c in cameras for k in (image_key(c), goal_image_key(c))}
     config.output_features = {"action": PolicyFeature(type=FeatureType.ACTION, shape=(4,))}
     torch.manual_seed(99)
@@ -60,14 +68,25 @@ def make_policies(seeds: list[int], method: str = "separated_q", **fields) -> li
 def make_replay(policy: MurmPolicy, episodes: int = 20, frames: int = 25) -> LatentReplay:
     rng = np.random.default_rng(0)
     g, n = ENCODER.grid_size, episodes * frames
-    caches = [LatentCache(c, rng.integers(0, 16, (n, g, g)).astype(np.uint16),
-                          rng.integers(0, 16, (episodes, g, g)).astype(np.uint16),
-                          rng.normal(size=(16, ENCODER.embedding_dim)).astype(np.float32),
-                          np.repeat(np.arange(episodes), frames), np.tile(np.arange(frames), episodes))
-              for c in policy.cameras]
+    caches = [
+        LatentCache(
+            c,
+            rng.integers(0, 16, (n, g, g)).astype(np.uint16),
+            rng.integers(0, 16, (episodes, g, g)).astype(np.uint16),
+            rng.normal(size=(16, ENCODER.embedding_dim)).astype(np.float32),
+            np.repeat(np.arange(episodes), frames),
+            np.tile(np.arange(frames), episodes),
+        )
+        for c in policy.cameras
+    ]
     c = policy.config
-    replay = LatentReplay(caches, rng.uniform(-1, 1, (n, 4)).astype(np.float32), c.epsilon, c.her_ratio,
-                          dropout_p=c.dropout_p if c.view_dropout else 0.0)
+    replay = LatentReplay(
+        caches,
+        rng.uniform(-1, 1, (n, 4)).astype(np.float32),
+        c.epsilon,
+        c.her_ratio,
+        dropout_p=c.dropout_p if c.view_dropout else 0.0,
+    )
     policy.fit_latent_statistics(replay.latents)
     return replay
 
@@ -187,8 +206,9 @@ def test_evaluation_acts_for_every_seed_in_one_forward_as_each_would_alone():
     for policy in policies:
         policy.eval().config.eval_mask_p = 0.5
     g = torch.Generator().manual_seed(0)
-    batch = {key: torch.rand(3 * 4, 3, 16, 16, generator=g)
-             for c in CAMERAS for key in (image_key(c), goal_image_key(c))}
+    batch = {
+        key: torch.rand(3 * 4, 3, 16, 16, generator=g) for c in CAMERAS for key in (image_key(c), goal_image_key(c))
+    }
     for policy in policies:
         policy.mask_generator.manual_seed(0)
     together = act_together(policies, batch)

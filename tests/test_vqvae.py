@@ -23,15 +23,25 @@ from lerobot_murm.vqvae.train import train_vqvae
 
 MURM = Path(sys.executable).parent / "murm"
 REPO = "local/murm_pick_up"
-TINY = VQVAEConfig(steps=15, batch_size=16, hidden_channels=16, residual_channels=8, codebook_size=32,
-                   holdout_fraction=0.34)
+TINY = VQVAEConfig(
+    steps=15, batch_size=16, hidden_channels=16, residual_channels=8, codebook_size=32, holdout_fraction=0.34
+)
 
 
 @pytest.fixture(scope="module")
 def dataset_root(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("vq") / "ds"
-    collect(CollectConfig(task="pick_up", root=root, episodes=3, workers=1, cameras=("global", "top"), image_size=16,
-        noise_std=PAPER_NOISE_STD))
+    collect(
+        CollectConfig(
+            task="pick_up",
+            root=root,
+            episodes=3,
+            workers=1,
+            cameras=("global", "top"),
+            image_size=16,
+            noise_std=PAPER_NOISE_STD,
+        )
+    )
     return root
 
 
@@ -125,8 +135,18 @@ def test_a_changed_encoder_or_dataset_never_gets_a_stale_cache(dataset_root, enc
 
     grown = tmp_path / "grown"
     subprocess.run(["cp", "-r", str(dataset_root), str(grown)], check=True)
-    collect(CollectConfig(task="pick_up", root=grown, episodes=4, workers=1, cameras=("global", "top"), image_size=16,
-        noise_std=PAPER_NOISE_STD, resume=True))
+    collect(
+        CollectConfig(
+            task="pick_up",
+            root=grown,
+            episodes=4,
+            workers=1,
+            cameras=("global", "top"),
+            image_size=16,
+            noise_std=PAPER_NOISE_STD,
+            resume=True,
+        )
+    )
     cache = build_latent_cache(REPO, grown, encoder_dir, tmp_path / "cache")
     assert len(list((tmp_path / "cache").glob("*.npz"))) == 3
     assert len(cache.indices) == 400
@@ -151,14 +171,32 @@ def test_distance_statistics_suggest_an_epsilon_between_the_two_distributions(da
 
 def test_the_cli_trains_and_encodes(dataset_root, tmp_path):
     out = tmp_path / "enc"
-    run = [str(MURM), "train-vqvae", "--dataset", str(dataset_root), "--camera", "top", "--steps", "5",
-           "--out", str(out)]
+    run = [
+        str(MURM),
+        "train-vqvae",
+        "--dataset",
+        str(dataset_root),
+        "--camera",
+        "top",
+        "--steps",
+        "5",
+        "--out",
+        str(out),
+    ]
     result = subprocess.run(run + ["--batch-size", "8"], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "held-out PSNR" in result.stdout
     result = subprocess.run(
-        [str(MURM), "encode", "--dataset", str(dataset_root), "--encoders", str(out),
-         "--cache-dir", str(tmp_path / "c")],
+        [
+            str(MURM),
+            "encode",
+            "--dataset",
+            str(dataset_root),
+            "--encoders",
+            str(out),
+            "--cache-dir",
+            str(tmp_path / "c"),
+        ],
         capture_output=True,
         text=True,
         timeout=300,
@@ -170,8 +208,22 @@ def test_the_cli_trains_and_encodes(dataset_root, tmp_path):
 def test_a_stopped_training_resumes_to_the_same_encoder_as_an_unbroken_one(dataset_root, tmp_path):
     steps = 600  # a resume state is written every 250 steps; the stop comes after the first
     out = tmp_path / "stopped"
-    command = [str(MURM), "train-vqvae", "--dataset", str(dataset_root), "--camera", "global", "--steps", str(steps),
-               "--batch-size", "8", "--device", "cpu", "--out", str(out)]
+    command = [
+        str(MURM),
+        "train-vqvae",
+        "--dataset",
+        str(dataset_root),
+        "--camera",
+        "global",
+        "--steps",
+        str(steps),
+        "--batch-size",
+        "8",
+        "--device",
+        "cpu",
+        "--out",
+        str(out),
+    ]
     log = tmp_path / "stderr.txt"  # a file, not an unread pipe that a slow run could fill and block on
     with log.open("w") as stderr_file:
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=stderr_file)

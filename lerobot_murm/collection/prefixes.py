@@ -35,8 +35,11 @@ def finished_siblings(config: CollectConfig) -> dict[int, Path]:
     found = {}
     for root in sorted(config.root.parent.iterdir()) if config.root.parent.is_dir() else []:
         summary = murm_dataset.read_summary(root) if root.is_dir() and root != config.root else None
-        if summary and summary["episodes"] >= summary["requested_episodes"] \
-                and murm_dataset.read_recipe(root) == config.recipe:
+        if (
+            summary
+            and summary["episodes"] >= summary["requested_episodes"]
+            and murm_dataset.read_recipe(root) == config.recipe
+        ):
             found[summary["episodes"]] = root
     return found
 

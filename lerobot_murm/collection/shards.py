@@ -42,8 +42,15 @@ def shard_ranges(episodes: int, shard_episodes: int) -> list[range]:
 def shard_config(config: CollectConfig, episodes: range) -> CollectConfig:
     root = config.root.with_name(f"{config.root.name}.shards") / f"{episodes.start:06d}-{episodes.stop:06d}"
     # one simulator in the task's own process: a shard task asks the cluster for one CPU
-    return replace(config, root=root, first_episode=episodes.start, episodes=len(episodes), workers=1,
-                   resume=root.exists(), overwrite=False)
+    return replace(
+        config,
+        root=root,
+        first_episode=episodes.start,
+        episodes=len(episodes),
+        workers=1,
+        resume=root.exists(),
+        overwrite=False,
+    )
 
 
 def collect_shard(config: CollectConfig, episodes: range) -> Path:
@@ -64,8 +71,9 @@ def merge_shards(config: CollectConfig, ranges: list[range]) -> dict:
     with exclusive(config.root, wait=True):
         merging = config.root.with_name(f"{config.root.name}.merging")
         shutil.rmtree(merging, ignore_errors=True)  # what a stopped merge left
-        aggregate_datasets([s.repo_id for s in shards], config.repo_id, roots=[s.root for s in shards],
-                           aggr_root=merging)
+        aggregate_datasets(
+            [s.repo_id for s in shards], config.repo_id, roots=[s.root for s in shards], aggr_root=merging
+        )
         successes = murm_dataset.episode_successes(config.repo_id, merging)
         summary = murm_dataset.write_summary(merging, config.recipe, successes, config.episodes)
         merging.rename(config.root)

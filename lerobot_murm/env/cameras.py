@@ -104,8 +104,7 @@ class EndEffectorCamera:
     @classmethod
     def from_authors(cls, target_offset, distance: float, yaw: float, pitch: float) -> EndEffectorCamera:
         eye, up = _authors_eye_and_up((0.0, 0.0, 0.0), distance, yaw, pitch)
-        return cls(target_offset=_mirror_vector(target_offset), eye_offset=_mirror_vector(eye),
-                   up=_mirror_vector(up))
+        return cls(target_offset=_mirror_vector(target_offset), eye_offset=_mirror_vector(eye), up=_mirror_vector(up))
 
     def view_matrix(self, ee_position: np.ndarray) -> tuple[float, ...]:
         target = np.asarray(ee_position) + np.asarray(self.target_offset)
@@ -178,8 +177,9 @@ class CameraRig:
 
     def render_with_mask(self, name: str, ee_position: np.ndarray, body: int) -> tuple[np.ndarray, np.ndarray]:
         """The camera's image and an HxW bool mask of the pixels where `body` is visible."""
-        rgb, segmentation = render_segmented_view(self._client, self._view(name, ee_position), self._projection,
-                                                  self.image_size)
+        rgb, segmentation = render_segmented_view(
+            self._client, self._view(name, ee_position), self._projection, self.image_size
+        )
         return (blur(rgb) if self.blurred else rgb), segmentation == body
 
     def _view(self, name: str, ee_position: np.ndarray) -> tuple[float, ...]:

@@ -29,7 +29,9 @@ def mean_curves(runs: list[dict]) -> dict[tuple[str, str, float], list[tuple[int
     for key, seeds in sorted(by_seed.items()):
         steps = {tuple(sorted(points)) for points in seeds.values()}
         if len(steps) != 1:
-            raise ValueError(f"{key[0]} on {key[1]}: its seeds were evaluated at different steps; train them to one cap")
+            raise ValueError(
+                f"{key[0]} on {key[1]}: its seeds were evaluated at different steps; train them to one cap"
+            )
         curves[key] = [(step, sum(points[step] for points in seeds.values()) / len(seeds)) for step in steps.pop()]
     return curves
 
@@ -46,21 +48,38 @@ def choose_budget(spec: BudgetSpec, runs: list[dict], cap: int, seeds: int) -> d
             raise ValueError(f"{cell} on {task}: its curve ends at {last:,} updates, not at the cap {cap:,}")
         at = flattens_at(curve, episodes)
         flat &= at < last
-        points.append({"cell": cell, "task": task, "mask_p": mask_p, "flattens_at": at, "rising_at_cap": at == last,
-                       "curve": [[step, round(rate, 4)] for step, rate in curve]})
+        points.append(
+            {
+                "cell": cell,
+                "task": task,
+                "mask_p": mask_p,
+                "flattens_at": at,
+                "rising_at_cap": at == last,
+                "curve": [[step, round(rate, 4)] for step, rate in curve],
+            }
+        )
     latest = max(p["flattens_at"] for p in points)
     budget = cap if not flat else math.ceil(latest / spec.every) * spec.every
     if spec.at_least and not (spec.unless_flat_before and latest < spec.unless_flat_before):
         budget = max(budget, min(spec.at_least, cap))
-    return {"cap": cap, "budget": budget, "flat": flat, "seeds": seeds, "pooled_episodes": episodes,
-            "rule": {"every": spec.every, "at_least": spec.at_least, "unless_flat_before": spec.unless_flat_before},
-            "flattening": points}
+    return {
+        "cap": cap,
+        "budget": budget,
+        "flat": flat,
+        "seeds": seeds,
+        "pooled_episodes": episodes,
+        "rule": {"every": spec.every, "at_least": spec.at_least, "unless_flat_before": spec.unless_flat_before},
+        "flattening": points,
+    }
 
 
 def budget_markdown(decision: dict) -> str:
     """Where each mean validation curve flattens, and the budget that gives."""
-    lines = [f"Budget: **{decision['budget']:,} updates** (cap {decision['cap']:,}; each point the mean of "
-             f"{decision['seeds']} seeds, {decision['pooled_episodes']} validation episodes pooled).", ""]
+    lines = [
+        f"Budget: **{decision['budget']:,} updates** (cap {decision['cap']:,}; each point the mean of "
+        f"{decision['seeds']} seeds, {decision['pooled_episodes']} validation episodes pooled).",
+        "",
+    ]
     if not decision["flat"]:
         lines += ["Some curve still rises at the cap, the largest this grid allows: the table trains to the cap.", ""]
     lines += ["| task | cell | masking | flattens at |", "|---|---|---:|---:|"]

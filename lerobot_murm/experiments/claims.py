@@ -67,8 +67,12 @@ class Tables:
             for row in read_table(table):
                 std = row["success_std"]
                 self.cells[(table.parent.name, row["task"], row["cell"], round(float(row["mask_p"]), 4))] = Cell(
-                    float(row["success_mean"]), float(std) if std not in ("", "None") else None,
-                    int(row["seeds"]), int(row["episodes_per_seed"]), float(row["train_steps_per_s"]))
+                    float(row["success_mean"]),
+                    float(std) if std not in ("", "None") else None,
+                    int(row["seeds"]),
+                    int(row["episodes_per_seed"]),
+                    float(row["train_steps_per_s"]),
+                )
 
     def get(self, grid: str, task: str, cell: str, mask_p: float = 0.0) -> Cell | None:
         return self.cells.get((grid, task, cell, round(mask_p, 4)))
@@ -150,8 +154,13 @@ class Verdict:
     evidence: str
 
 
-def judge_cells(grid: str, cells: list[str], decide: Callable[[dict[str, Cell]], str],
-                conditions: list[tuple[str, str, float]], short: dict[str, str] | None = None):
+def judge_cells(
+    grid: str,
+    cells: list[str],
+    decide: Callable[[dict[str, Cell]], str],
+    conditions: list[tuple[str, str, float]],
+    short: dict[str, str] | None = None,
+):
     """A judge that applies `decide` to these cells under each condition (its label, task and
     masking level) where all of them have run."""
 
@@ -167,14 +176,24 @@ def judge_cells(grid: str, cells: list[str], decide: Callable[[dict[str, Cell]],
     return judge
 
 
-def per_task(grid: str, cells: list[str], mask_p: float, decide: Callable[[dict[str, Cell]], str],
-             short: dict[str, str] | None = None):
+def per_task(
+    grid: str,
+    cells: list[str],
+    mask_p: float,
+    decide: Callable[[dict[str, Cell]], str],
+    short: dict[str, str] | None = None,
+):
     """A judge of these cells on every task, at one masking level."""
     return judge_cells(grid, cells, decide, [(task, task, mask_p) for task in TASKS], short)
 
 
-def per_masking(grid: str, cells: list[str], decide: Callable[[dict[str, Cell]], str],
-                short: dict[str, str] | None = None, levels: tuple[float, ...] = (0.0, 0.5)):
+def per_masking(
+    grid: str,
+    cells: list[str],
+    decide: Callable[[dict[str, Cell]], str],
+    short: dict[str, str] | None = None,
+    levels: tuple[float, ...] = (0.0, 0.5),
+):
     """A judge for task-1 grids: these cells at each masking level."""
     return judge_cells(grid, cells, decide, [(f"{m:.0%} masking", "place_in_box", m) for m in levels], short)
 
@@ -235,9 +254,11 @@ def _time_costs(tables: Tables) -> Judged:
         return Judged([], [], 1)
     ratio = {name: cells[0].steps_per_s / c.steps_per_s for name, c in zip(names, cells, strict=True)}
     close = all(abs(ratio[n] - TABLE5[n]) <= 0.25 for n in names)
-    ordered = (ratio["dropout-global+adjacent"] < ratio["separated_q-global+adjacent"]
-               and ratio["dropout-global+adjacent+top"] > ratio["dropout-global+adjacent"]
-               and ratio["separated_q-global+adjacent+top"] > ratio["separated_q-global+adjacent"])
+    ordered = (
+        ratio["dropout-global+adjacent"] < ratio["separated_q-global+adjacent"]
+        and ratio["dropout-global+adjacent+top"] > ratio["dropout-global+adjacent"]
+        and ratio["separated_q-global+adjacent+top"] > ratio["separated_q-global+adjacent"]
+    )
     verdict = HOLDS if close else PARTLY if ordered else FAILS
     text = ", ".join(f"{n} {ratio[n]:.2f} (paper {TABLE5[n]:.2f})" for n in names[1:])
     return Judged([verdict], [f"place_in_box: {text} ({verdict})"], 1)
@@ -280,54 +301,105 @@ def _no_gain_beyond_1000(row: dict[str, Cell]) -> str:
 def masking_claim(cell: str, what: str, paper: str, fails: bool) -> Claim:
     """A Table 4 claim about one method under 50 % masking, judged against the unmasked single view."""
     if fails:
-        return Claim("Table 4", f"{what} fails under 50 % masking (paper {paper} %)",
-                     "per task, below a third of the unmasked single view's success",
-                     masked_vs_single(cell, fails_under_masking))
-    return Claim("Table 4", f"{what} stays successful under 50 % masking (paper {paper} %)",
-                 "per task, at least half the unmasked single view's success", masked_vs_single(cell, stays_successful))
+        return Claim(
+            "Table 4",
+            f"{what} fails under 50 % masking (paper {paper} %)",
+            "per task, below a third of the unmasked single view's success",
+            masked_vs_single(cell, fails_under_masking),
+        )
+    return Claim(
+        "Table 4",
+        f"{what} stays successful under 50 % masking (paper {paper} %)",
+        "per task, at least half the unmasked single view's success",
+        masked_vs_single(cell, stays_successful),
+    )
 
 
 CLAIMS = [
-    Claim("Table 1", "128 units per layer give the highest success of the widths 32-256",
-          "the 128-unit cell is clearly above the best other width",
-          per_masking("table1", [f"single-global-{w}" for w in (32, 64, 128, 256)],
-                      lambda row: best_verdict(row, "single-global-128"), levels=(0.0,))),
-    Claim("Table 2", "epsilon 2.0 gives the highest success of the five thresholds",
-          "the paper-epsilon-2 cell (mapped to our scale) is clearly above the best other threshold",
-          per_masking("table2", [f"single-global-paper-eps{e}" for e in ("0.1", "1", "2", "3", "5")],
-                      lambda row: best_verdict(row, "single-global-paper-eps2"), levels=(0.0,))),
-    Claim("Table 3", "global and adjacent are the best single views on every task",
-          "per task, global and adjacent are each clearly above the best of top, side and active "
-          "(partly: one above, one below)",
-          per_task("table3", [f"single-{v}" for v in VIEWS], 0.0, _top_two, {f"single-{v}": v for v in VIEWS})),
+    Claim(
+        "Table 1",
+        "128 units per layer give the highest success of the widths 32-256",
+        "the 128-unit cell is clearly above the best other width",
+        per_masking(
+            "table1",
+            [f"single-global-{w}" for w in (32, 64, 128, 256)],
+            lambda row: best_verdict(row, "single-global-128"),
+            levels=(0.0,),
+        ),
+    ),
+    Claim(
+        "Table 2",
+        "epsilon 2.0 gives the highest success of the five thresholds",
+        "the paper-epsilon-2 cell (mapped to our scale) is clearly above the best other threshold",
+        per_masking(
+            "table2",
+            [f"single-global-paper-eps{e}" for e in ("0.1", "1", "2", "3", "5")],
+            lambda row: best_verdict(row, "single-global-paper-eps2"),
+            levels=(0.0,),
+        ),
+    ),
+    Claim(
+        "Table 3",
+        "global and adjacent are the best single views on every task",
+        "per task, global and adjacent are each clearly above the best of top, side and active "
+        "(partly: one above, one below)",
+        per_task("table3", [f"single-{v}" for v in VIEWS], 0.0, _top_two, {f"single-{v}": v for v in VIEWS}),
+    ),
     masking_claim(SINGLE, "a single view", "0 / 3 / 0", fails=True),
     masking_claim(CONCAT, "concatenation", "4 / 12 / 4", fails=True),
     masking_claim(DROPOUT, "MURM dropout", "36 / 40 / 10", fails=False),
     masking_claim(SEPARATED, "MURM separated Q", "38 / 44 / 15", fails=False),
-    Claim("Table 4", "separated Q is the best method under masking",
-          "per task at 50 % masking, separated Q is clearly above the best of single, concat and dropout",
-          per_task("table4", [SINGLE, CONCAT, DROPOUT, SEPARATED], 0.5, lambda row: best_verdict(row, SEPARATED),
-                   {SINGLE: "single", CONCAT: "concat", DROPOUT: "dropout", SEPARATED: "separated Q"})),
-    Claim("Table 5", "dropout trains in about the single view's time (1.05x), separated Q in about 1.5x, "
-          "and each added view costs about 0.5x more",
-          "every ratio within 0.25 of the paper's (partly: the same order: dropout < separated Q, "
-          "three cameras > two)", _time_costs),
-    Claim("Table 6", "the gain from adding a view follows that view's own single-view success",
-          "each two of top / side / active whose order is resolved both alone (Table 3) and added to "
-          "global (separated Q) are in the same order (partly: some pairs are), at 0 and 50 % masking",
-          _gain_follows_the_added_view),
-    Claim("Table 7", "more demonstrations help up to about 1000",
-          "1000 demonstrations clearly above 250, at 0 and 50 % masking",
-          per_masking("table7", ["demos250", "demos1000"], _more_help_up_to_1000)),
-    Claim("Table 7", "more than about 1000 demonstrations bring no further gain",
-          "neither 2000 nor 3000 clearly above 1000 and both clearly below it (does not hold: one clearly above), "
-          "at 0 and 50 % masking",
-          per_masking("table7", ["demos1000", "demos2000", "demos3000"], _no_gain_beyond_1000)),
-    Claim("Table 7", "a fully noisy dataset is best",
-          "the 100 %-noisy cell (1000 demonstrations) clearly above the best of 0 / 25 / 50 % noisy, "
-          "at 0 and 50 % masking",
-          per_masking("table7", ["noisy0", "noisy25", "noisy50", "demos1000"],
-                      lambda row: best_verdict(row, "demos1000"), {"demos1000": "noisy100"})),
+    Claim(
+        "Table 4",
+        "separated Q is the best method under masking",
+        "per task at 50 % masking, separated Q is clearly above the best of single, concat and dropout",
+        per_task(
+            "table4",
+            [SINGLE, CONCAT, DROPOUT, SEPARATED],
+            0.5,
+            lambda row: best_verdict(row, SEPARATED),
+            {SINGLE: "single", CONCAT: "concat", DROPOUT: "dropout", SEPARATED: "separated Q"},
+        ),
+    ),
+    Claim(
+        "Table 5",
+        "dropout trains in about the single view's time (1.05x), separated Q in about 1.5x, "
+        "and each added view costs about 0.5x more",
+        "every ratio within 0.25 of the paper's (partly: the same order: dropout < separated Q, three cameras > two)",
+        _time_costs,
+    ),
+    Claim(
+        "Table 6",
+        "the gain from adding a view follows that view's own single-view success",
+        "each two of top / side / active whose order is resolved both alone (Table 3) and added to "
+        "global (separated Q) are in the same order (partly: some pairs are), at 0 and 50 % masking",
+        _gain_follows_the_added_view,
+    ),
+    Claim(
+        "Table 7",
+        "more demonstrations help up to about 1000",
+        "1000 demonstrations clearly above 250, at 0 and 50 % masking",
+        per_masking("table7", ["demos250", "demos1000"], _more_help_up_to_1000),
+    ),
+    Claim(
+        "Table 7",
+        "more than about 1000 demonstrations bring no further gain",
+        "neither 2000 nor 3000 clearly above 1000 and both clearly below it (does not hold: one clearly above), "
+        "at 0 and 50 % masking",
+        per_masking("table7", ["demos1000", "demos2000", "demos3000"], _no_gain_beyond_1000),
+    ),
+    Claim(
+        "Table 7",
+        "a fully noisy dataset is best",
+        "the 100 %-noisy cell (1000 demonstrations) clearly above the best of 0 / 25 / 50 % noisy, "
+        "at 0 and 50 % masking",
+        per_masking(
+            "table7",
+            ["noisy0", "noisy25", "noisy50", "demos1000"],
+            lambda row: best_verdict(row, "demos1000"),
+            {"demos1000": "noisy100"},
+        ),
+    ),
 ]
 
 
@@ -355,8 +427,11 @@ def claims_table(results_dir: Path, rules: bool = True) -> str:
         lines.append(f"| {v.claim.source} | {v.claim.text} | **{v.verdict}** | {v.evidence} |")
     text = "\n".join(lines) + "\n"
     if rules:
-        text += ("\nHow each verdict is decided (fixed before the v2 tables ran; "
-                 "`lerobot_murm/experiments/claims.py`):\n\n"
-                 + "\n".join(f"- {v.claim.source}, {v.claim.text}: {v.claim.rule}." for v in verdicts)
-                 + "\n" + DEFINITIONS)
+        text += (
+            "\nHow each verdict is decided (fixed before the v2 tables ran; "
+            "`lerobot_murm/experiments/claims.py`):\n\n"
+            + "\n".join(f"- {v.claim.source}, {v.claim.text}: {v.claim.rule}." for v in verdicts)
+            + "\n"
+            + DEFINITIONS
+        )
     return text

@@ -2,8 +2,9 @@
 
 A cell names a method and its cameras and may change the demonstrations (Table 7) or the
 reward threshold (Table 2): on our encoders' scale (`epsilon`), on the paper's
-(`paper_epsilon`, mapped) or as a quantile of frame-to-goal distances (`epsilon_quantile`). Every stage has defaults at the paper's scale; the YAML files
-in `configs/reproduce/` say what each table varies.
+(`paper_epsilon`, mapped) or as a quantile of frame-to-goal distances (`epsilon_quantile`).
+Every stage has defaults at the paper's scale; the YAML files in `configs/reproduce/` say
+what each table varies.
 """
 
 from __future__ import annotations
@@ -66,8 +67,9 @@ class BudgetSpec:
     def check(self) -> None:
         """Called by the grid's config (draccus would hide this message behind its own)."""
         if min(self.every, self.episodes) < 1 or self.cap < self.every or self.cap % self.every:
-            raise ValueError(f"budget: cap ({self.cap}) must be a positive multiple of every ({self.every}), "
-                             f"and episodes at least 1")
+            raise ValueError(
+                f"budget: cap ({self.cap}) must be a positive multiple of every ({self.every}), and episodes at least 1"
+            )
         if self.max_cap < self.cap or self.at_least > self.max_cap:
             raise ValueError(f"budget: max_cap ({self.max_cap}) must be at least cap ({self.cap}) and at_least")
 
@@ -92,10 +94,19 @@ class CellSpec:
     def __post_init__(self) -> None:
         if not self.label:
             self.label = f"{self.method}-{'+'.join(self.cameras)}"
-        given = {k: v for k, v in (("epsilon", self.epsilon), ("paper_epsilon", self.paper_epsilon),
-                                   ("epsilon_quantile", self.epsilon_quantile)) if v is not None}
+        given = {
+            k: v
+            for k, v in (
+                ("epsilon", self.epsilon),
+                ("paper_epsilon", self.paper_epsilon),
+                ("epsilon_quantile", self.epsilon_quantile),
+            )
+            if v is not None
+        }
         if len(given) > 1:
-            raise ValueError(f"cell {self.label}: set one of epsilon, paper_epsilon, epsilon_quantile, not {list(given)}")
+            raise ValueError(
+                f"cell {self.label}: set one of epsilon, paper_epsilon, epsilon_quantile, not {list(given)}"
+            )
         for key, values in given.items():
             if len(values) != len(self.cameras):
                 raise ValueError(f"cell {self.label}: {len(values)} {key} values for {len(self.cameras)} cameras")
@@ -184,13 +195,25 @@ class ReproduceConfig:
         A budget grid evaluates every `budget.every` updates on its validation episodes, keeps
         the policy there and leaves the test episodes to the budget (`test_kept`)."""
         t, b = self.train, self.budget
-        settings = {"steps": steps or self.cell_steps(cell), "batch_size": t.batch_size, "log_every": t.log_every,
-                    "eval_every": t.eval_every, "eval_episodes": t.eval_episodes,
-                    "final_eval_episodes": t.final_eval_episodes, "eval_mask_p": list(cell.eval_mask_p),
-                    "eval_envs": t.eval_envs, "eval_authors_masking": cell.eval_authors_masking}
+        settings = {
+            "steps": steps or self.cell_steps(cell),
+            "batch_size": t.batch_size,
+            "log_every": t.log_every,
+            "eval_every": t.eval_every,
+            "eval_episodes": t.eval_episodes,
+            "final_eval_episodes": t.final_eval_episodes,
+            "eval_mask_p": list(cell.eval_mask_p),
+            "eval_envs": t.eval_envs,
+            "eval_authors_masking": cell.eval_authors_masking,
+        }
         if b is not None:
-            settings |= {"eval_every": b.every, "eval_episodes": b.episodes, "final_eval_episodes": b.episodes,
-                         "keep_every": b.every, "final_test": False}
+            settings |= {
+                "eval_every": b.every,
+                "eval_episodes": b.episodes,
+                "final_eval_episodes": b.episodes,
+                "keep_every": b.every,
+                "final_test": False,
+            }
         return settings
 
     def validate_stages(self) -> None:
@@ -209,12 +232,18 @@ class ReproduceConfig:
         c = self.collection
         for cell in self.cells:
             try:
-                policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), epsilon=cell.epsilon,
-                                    device="cpu", **cell.policy)
+                policy = MurmConfig(
+                    method=cell.method, cameras=list(cell.cameras), epsilon=cell.epsilon, device="cpu", **cell.policy
+                )
                 for task in self.tasks:
                     CollectConfig(
-                        task=task, root=Path(self.work_dir), episodes=self.cell_episodes(cell), workers=c.workers,
-                        image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,
+                        task=task,
+                        root=Path(self.work_dir),
+                        episodes=self.cell_episodes(cell),
+                        workers=c.workers,
+                        image_size=c.image_size,
+                        seed=c.seed,
+                        noise_std=c.noise_std,
                         noisy_fraction=self.cell_noisy_fraction(cell),
                     )
                     TrainConfig(dataset="", task=task, policy=policy, seed=min(self.seeds), **self.train_settings(cell))

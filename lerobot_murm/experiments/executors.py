@@ -92,8 +92,9 @@ class ProcessExecutor:
         if jobs < 1:
             raise ValueError(f"--jobs must be at least 1, got {jobs}")
         self.threads = threads_per_job(jobs, cores)
-        self.pool = ProcessPoolExecutor(jobs, mp_context=get_context("forkserver"), initializer=_start_job_process,
-                                        initargs=(self.threads,))
+        self.pool = ProcessPoolExecutor(
+            jobs, mp_context=get_context("forkserver"), initializer=_start_job_process, initargs=(self.threads,)
+        )
 
     def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
         futures = {self.pool.submit(_run_job, fn, *job): job for job in jobs}
@@ -127,8 +128,14 @@ class RayExecutor:
     waits for a task that holds what it needs; how those locks behave on NFS: locking.py.
     """
 
-    def __init__(self, address: str | None = None, cpus_per_task: int = 1, gpus_per_task: float = 0.0,
-                 shard_episodes: int = 100, retries: int = 3):
+    def __init__(
+        self,
+        address: str | None = None,
+        cpus_per_task: int = 1,
+        gpus_per_task: float = 0.0,
+        shard_episodes: int = 100,
+        retries: int = 3,
+    ):
         try:
             import ray
         except ImportError:
@@ -142,8 +149,11 @@ class RayExecutor:
     def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
         cpus = self.cpus if cpus is None else cpus
         task = self.ray.remote(_call_with_threads).options(
-            name=fn.__name__, num_cpus=cpus, num_gpus=self.gpus if gpus is None else gpus,
-            max_retries=self.retries, retry_exceptions=[TrainingInterrupted, CollectionInterrupted],
+            name=fn.__name__,
+            num_cpus=cpus,
+            num_gpus=self.gpus if gpus is None else gpus,
+            max_retries=self.retries,
+            retry_exceptions=[TrainingInterrupted, CollectionInterrupted],
         )
         refs = {task.remote(fn, cpus, *job): job for job in jobs}
         pending = list(refs)
@@ -159,8 +169,14 @@ class RayExecutor:
         self.ray.shutdown()
 
 
-def make_executor(kind: str = "local", jobs: int = 1, address: str | None = None, cpus_per_task: int = 1,
-                  gpus_per_task: float = 0.0, shard_episodes: int = 100):
+def make_executor(
+    kind: str = "local",
+    jobs: int = 1,
+    address: str | None = None,
+    cpus_per_task: int = 1,
+    gpus_per_task: float = 0.0,
+    shard_episodes: int = 100,
+):
     if kind not in EXECUTORS:
         raise ValueError(f"unknown executor {kind!r}; choose from {list(EXECUTORS)}")
     if kind == "ray":

@@ -16,6 +16,7 @@ from lerobot_murm.experiments.claims import Cell, clearly_below
 def clearly_higher(later: float, earlier: float, episodes: int) -> bool:
     """Whether success rate `later` (0-1) beats `earlier` by more than two standard errors:
     the claims' `clearly_below` for one seed of `episodes` episodes each."""
+
     def one_seed(rate: float) -> Cell:
         return Cell(100 * rate, None, 1, episodes, 0.0)
 
@@ -28,8 +29,11 @@ def flattens_at(curve: list[tuple[int, float]], episodes: int) -> int:
     points = sorted(curve)
     if not points:
         raise ValueError("an empty learning curve has no flattening point")
-    return next(step for i, (step, rate) in enumerate(points)
-                if not any(clearly_higher(later, rate, episodes) for _, later in points[i + 1:]))
+    return next(
+        step
+        for i, (step, rate) in enumerate(points)
+        if not any(clearly_higher(later, rate, episodes) for _, later in points[i + 1 :])
+    )
 
 
 def run_flattening(run: dict, episodes: int) -> dict[float, int]:

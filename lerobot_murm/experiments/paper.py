@@ -78,5 +78,10 @@ TABLE5 = {  # Table 5: training time relative to the single-view baseline, task 
 }
 
 PAPER_TABLES = {
-    "table1": TABLE1, "table2": TABLE2, "table3": TABLE3, "table4": TABLE4, "table6": TABLE6, "table7": TABLE7
+    "table1": TABLE1,
+    "table2": TABLE2,
+    "table3": TABLE3,
+    "table4": TABLE4,
+    "table6": TABLE6,
+    "table7": TABLE7,
 }

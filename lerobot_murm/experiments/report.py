@@ -39,24 +39,31 @@ def grid_tasks(results: Path) -> tuple[str, ...]:
     return tuple(t for t in TASKS if t in tasks)
 
 
-def _per_task(name: str, rows: list[dict], tasks: tuple[str, ...]
-              ) -> dict[tuple[str, float], list[tuple[dict | None, float | None]]]:
+def _per_task(
+    name: str, rows: list[dict], tasks: tuple[str, ...]
+) -> dict[tuple[str, float], list[tuple[dict | None, float | None]]]:
     """Per (cell, masking) row, the paper's rows first: for each task our table row (None:
     not run yet) and the paper's value (None: none)."""
     ours = {(r["cell"], float(r["mask_p"]), r["task"]): r for r in rows}
     paper = PAPER_TABLES.get(name, {})
     keys = list(paper) + [k for k in _row_keys(rows) if k not in paper]
-    return {(cell, mask_p): [(ours.get((cell, mask_p, task)),
-                              paper.get((cell, mask_p), (None,) * len(TASKS))[TASKS.index(task)]) for task in tasks]
-            for cell, mask_p in keys}
+    return {
+        (cell, mask_p): [
+            (ours.get((cell, mask_p, task)), paper.get((cell, mask_p), (None,) * len(TASKS))[TASKS.index(task)])
+            for task in tasks
+        ]
+        for cell, mask_p in keys
+    }
 
 
 def comparison(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -> str:
     """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet. A
     grid of our own (no paper table) has no paper columns."""
     with_paper = name in PAPER_TABLES
-    lines = ["| cell | masking | " + " | ".join(f"{t}: ours | paper" if with_paper else t for t in tasks) + " |",
-             "|---|---:|" + ("---:|---:|" if with_paper else "---:|") * len(tasks)]
+    lines = [
+        "| cell | masking | " + " | ".join(f"{t}: ours | paper" if with_paper else t for t in tasks) + " |",
+        "|---|---:|" + ("---:|---:|" if with_paper else "---:|") * len(tasks),
+    ]
     for (cell, mask_p), per_task in _per_task(name, rows, tasks).items():
         cells = []
         for r, value in per_task:
@@ -75,8 +82,9 @@ def plot_against_paper(name: str, rows: list[dict], tasks: tuple[str, ...], path
     drawn = [t for i, t in enumerate(tasks) if any(values[i][0] for values in per_task.values())]
     if name not in PAPER_TABLES or not drawn:
         return False
-    labels = [f"{cell}, masking {mask_p:.0%}" if mask_p and "authors'" not in cell else cell
-              for cell, mask_p in per_task]
+    labels = [
+        f"{cell}, masking {mask_p:.0%}" if mask_p and "authors'" not in cell else cell for cell, mask_p in per_task
+    ]
     fig = Figure(figsize=(4.2 * len(drawn) + 3.5, 0.45 * len(labels) + 1.4))
     axes = fig.subplots(1, len(drawn), squeeze=False, sharey=True)
     y = np.arange(len(labels))
@@ -85,8 +93,15 @@ def plot_against_paper(name: str, rows: list[dict], tasks: tuple[str, ...], path
         ours = [float(r["success_mean"]) if r else np.nan for r, _ in column]
         spread = [float(r["success_std"]) if r and r["success_std"] not in ("", None) else 0.0 for r, _ in column]
         paper = [np.nan if value is None else value for _, value in column]
-        ax.barh(y - 0.2, ours, 0.4, xerr=spread, color="tab:blue", label="ours (mean ± sample std over seeds)",
-                error_kw={"elinewidth": 1, "capsize": 2})
+        ax.barh(
+            y - 0.2,
+            ours,
+            0.4,
+            xerr=spread,
+            color="tab:blue",
+            label="ours (mean ± sample std over seeds)",
+            error_kw={"elinewidth": 1, "capsize": 2},
+        )
         ax.barh(y + 0.2, paper, 0.4, color="tab:gray", label="paper")
         for k, (r, _) in enumerate(column):
             at = 1 if r is None else ours[k] + spread[k] + 1
@@ -118,17 +133,23 @@ def time_table(runs: list[dict], paper: dict[str, float], base_cell: str | None 
     for r in runs:
         cells.setdefault((r["task"], r["cell"]), []).append(r)
     against = base_cell or "first cell"
-    lines = [f"| task | cell | training steps/s | time per update vs. {against} (same machine) | runs | machines "
-             "| paper |",
-             "|---|---|---:|---:|---:|---:|---:|"]
+    lines = [
+        f"| task | cell | training steps/s | time per update vs. {against} (same machine) | runs | machines | paper |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
     for (task, cell), members in cells.items():
-        ratios = [float(np.mean(base[(task, r["hardware"])])) / float(r["train_steps_per_s"])
-                  for r in members if (task, r["hardware"]) in base]
+        ratios = [
+            float(np.mean(base[(task, r["hardware"])])) / float(r["train_steps_per_s"])
+            for r in members
+            if (task, r["hardware"]) in base
+        ]
         steps = float(np.mean([float(r["train_steps_per_s"]) for r in members]))
         value = paper.get(cell)
-        lines.append(f"| {task} | {cell} | {steps:.1f} | {f'{np.mean(ratios):.2f}' if ratios else '-'} | "
-                     f"{len(members)} | {len({r['hardware'] for r in members})} | "
-                     f"{'' if value is None else f'{value:.2f}'} |")
+        lines.append(
+            f"| {task} | {cell} | {steps:.1f} | {f'{np.mean(ratios):.2f}' if ratios else '-'} | "
+            f"{len(members)} | {len({r['hardware'] for r in members})} | "
+            f"{'' if value is None else f'{value:.2f}'} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -143,20 +164,24 @@ def sweeps_epsilon(results: Path) -> bool:
 def epsilon_table(results: Path) -> str:
     """The epsilon each cell ran at, on our encoders' scale, on the paper's (mapped) and as a
     quantile of frame-to-goal distances, so that nobody reads the paper's value as ours."""
-    lines = ["| task | cell | epsilon, ours | on the paper's scale | quantile of frame-to-goal distances |",
-             "|---|---|---:|---:|---:|"]
+    lines = [
+        "| task | cell | epsilon, ours | on the paper's scale | quantile of frame-to-goal distances |",
+        "|---|---|---:|---:|---:|",
+    ]
     runs = {}
     for r in stored_results(results / "runs"):
         runs.setdefault((r["task"], r["cell"]), r)  # every seed runs at the same epsilon (one encoder)
     for (task, cell), r in runs.items():
         paper, quantile = r.get("epsilon_paper_scale"), r.get("epsilon_quantile")
         lines.append(f"| {task} | {cell} | {_values(r['epsilon'])} | {_values(paper)} | {_values(quantile)} |")
-    note = ("Epsilon is a threshold on the squared latent distance ||z - z_goal||^2 (eq. 4-5), so its value "
-            "depends on the encoder. The paper's epsilons are on its own encoders' scale; a cell named "
-            "`paper-epsX` ran at X mapped to ours: X / 2.0 (the paper's chosen value) times the epsilon "
-            "`murm encode` suggests for our encoder (`paper_epsilon_on_our_scale` in "
-            "lerobot_murm/vqvae/latent_distance.py). The quantile is the share of random frames closer "
-            "to their goal than that epsilon ('-': a run from before these were recorded).")
+    note = (
+        "Epsilon is a threshold on the squared latent distance ||z - z_goal||^2 (eq. 4-5), so its value "
+        "depends on the encoder. The paper's epsilons are on its own encoders' scale; a cell named "
+        "`paper-epsX` ran at X mapped to ours: X / 2.0 (the paper's chosen value) times the epsilon "
+        "`murm encode` suggests for our encoder (`paper_epsilon_on_our_scale` in "
+        "lerobot_murm/vqvae/latent_distance.py). The quantile is the share of random frames closer "
+        "to their goal than that epsilon ('-': a run from before these were recorded)."
+    )
     return "\n".join(lines) + f"\n\n{note}\n"
 
 
@@ -169,8 +194,9 @@ def training_spread(results: Path, paper: dict[str, float]) -> str:
         if mask_p != 0.0:
             continue
         steps = sorted(set.intersection(*(set(s) for s in seeds)))
-        spread = (f"{np.mean([np.std([s[step] for s in seeds], ddof=1) for step in steps]):.2f}"
-                  if len(seeds) > 1 else "-")
+        spread = (
+            f"{np.mean([np.std([s[step] for s in seeds], ddof=1) for step in steps]):.2f}" if len(seeds) > 1 else "-"
+        )
         value = paper.get(cell)
         lines.append(f"| {task} | {cell} | {spread} | {len(seeds)} | {'' if value is None else f'{value:.2f}'} |")
     return "\n".join(lines) + "\n"
@@ -196,17 +222,22 @@ def encoders_text(run: dict) -> str:
 def run_list(results: Path, split: str = "test") -> str:
     """One line per run, with its final success on the grid's reported `split`, then the machine
     time the grid itself spent (reused runs were paid for by the grid that trained them)."""
-    lines = [f"| task | cell | seed | steps | final success, {split} (masking: %) | wall | train steps/s | hardware "
-             "| precision | encoders |", "|---|---|---:|---:|---|---:|---:|---|---|---|"]
+    lines = [
+        f"| task | cell | seed | steps | final success, {split} (masking: %) | wall | train steps/s | hardware "
+        "| precision | encoders |",
+        "|---|---|---:|---:|---|---:|---:|---|---|---|",
+    ]
     trained, seconds = 0, 0.0
     for r in stored_results(results / "runs"):
         if "reused_from" not in r:
             trained, seconds = trained + 1, seconds + r["wall_s"]
         finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in final_evaluations(r, split))
         wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
-        lines.append(f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
-                     f"{wall} | {r['train_steps_per_s']} | {r['hardware']} | {precision_text(r)} | "
-                     f"{encoders_text(r)} |")
+        lines.append(
+            f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
+            f"{wall} | {r['train_steps_per_s']} | {r['hardware']} | {precision_text(r)} | "
+            f"{encoders_text(r)} |"
+        )
     return "\n".join(lines) + f"\n\nMachine time of the runs this grid trained ({trained}): {seconds / 3600:.1f} h.\n"
 
 
@@ -242,21 +273,35 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             + comparison(results.name, rows, grid_tasks(results))
             + (f"\n![ours beside the paper]({where / 'vs_paper.png'})\n" if against_paper else "")
             + (f"\nTraining time (Table 5):\n\n{time_table(runs, TABLE5)}" if results.name == "table5" else "")
-            + (f"\nTraining time (Table 1's time column):\n\n{time_table(runs, TABLE1_TIME, 'single-global-128')}"
-               if results.name == "table1" else "")
+            + (
+                f"\nTraining time (Table 1's time column):\n\n{time_table(runs, TABLE1_TIME, 'single-global-128')}"
+                if results.name == "table1"
+                else ""
+            )
             + (f"\nReward threshold of each cell:\n\n{epsilon_table(results)}" if sweeps_epsilon(results) else "")
-            + (f"\nSpread over seeds during training (Table 2's second row; validation episodes of the learning "
-               f"curve):\n\n{training_spread(results, TABLE2_SPREAD)}" if results.name == "table2" else "")
+            + (
+                f"\nSpread over seeds during training (Table 2's second row; validation episodes of the learning "
+                f"curve):\n\n{training_spread(results, TABLE2_SPREAD)}"
+                if results.name == "table2"
+                else ""
+            )
             + f"\n![learning curves]({where / 'curves.png'})\n\n"
-            + (f"Where each validation curve flattens (the first evaluation that no later one beats by more "
-               f"than two standard errors; `lerobot_murm/experiments/flattening.py`):\n\n"
-               f"{flattening_table(runs, config.train.eval_episodes)}\n"
-               if config.choose_updates else "")
-            + (f"The table's one budget, chosen on the seeds' mean validation curves before any test episode "
-               f"(`lerobot_murm/experiments/budget.py`):\n\n{budget.read_text().strip()}\n\n"
-               if (budget := results / "budget.md").exists() else "")
+            + (
+                f"Where each validation curve flattens (the first evaluation that no later one beats by more "
+                f"than two standard errors; `lerobot_murm/experiments/flattening.py`):\n\n"
+                f"{flattening_table(runs, config.train.eval_episodes)}\n"
+                if config.choose_updates
+                else ""
+            )
+            + (
+                f"The table's one budget, chosen on the seeds' mean validation curves before any test episode "
+                f"(`lerobot_murm/experiments/budget.py`):\n\n{budget.read_text().strip()}\n\n"
+                if (budget := results / "budget.md").exists()
+                else ""
+            )
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")
-            + "Runs:\n\n" + run_list(results, split)
+            + "Runs:\n\n"
+            + run_list(results, split)
         )
     path.write_text("\n".join(sections))
     return path
@@ -275,8 +320,10 @@ def compact_table(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(texts) + " |")
     count = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]} to {seeds[-1]}"
     plural = "s" if seeds[-1] > 1 else ""
-    note = (f"Each value averages {count} training seed{plural} (sample std over them, ddof 1; test episodes); "
-            "the paper's value in brackets.")
+    note = (
+        f"Each value averages {count} training seed{plural} (sample std over them, ddof 1; test episodes); "
+        "the paper's value in brackets."
+    )
     return "\n".join(lines) + f"\n\n{note}\n"
 
 
@@ -297,8 +344,11 @@ def update_readme(results_dir: Path, readme: Path) -> list[str]:
     text = re.sub(r"<!-- results:(\w+) -->.*?<!-- /results:\1 -->", refill, text, flags=re.S)
     if "<!-- claims -->" in text:
         filled.append("claims")
-        text = re.sub(r"<!-- claims -->.*?<!-- /claims -->",
-                      lambda _: f"<!-- claims -->\n{claims_table(Path(results_dir), rules=False)}<!-- /claims -->",
-                      text, flags=re.S)
+        text = re.sub(
+            r"<!-- claims -->.*?<!-- /claims -->",
+            lambda _: f"<!-- claims -->\n{claims_table(Path(results_dir), rules=False)}<!-- /claims -->",
+            text,
+            flags=re.S,
+        )
     readme.write_text(text)
     return filled

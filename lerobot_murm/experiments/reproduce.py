@@ -83,8 +83,14 @@ def collect_config(config: ReproduceConfig, task: str, cell: CellSpec | None = N
     root = dataset_root(config, task, cell)
     c = config.collection
     return CollectConfig(
-        task=task, root=root, episodes=config.cell_episodes(cell), workers=c.workers,
-        cameras=CAMERA_NAMES, image_size=c.image_size, seed=c.seed, noise_std=c.noise_std,  # None: the task's std
+        task=task,
+        root=root,
+        episodes=config.cell_episodes(cell),
+        workers=c.workers,
+        cameras=CAMERA_NAMES,
+        image_size=c.image_size,
+        seed=c.seed,
+        noise_std=c.noise_std,  # None: the task's std
         noisy_fraction=config.cell_noisy_fraction(cell),
     )
 
@@ -179,8 +185,11 @@ def current_encoders(config: ReproduceConfig, task: str, cameras: list[str]) -> 
     (the work dir's, else the kept ones); None while one of them is yet to be trained."""
     root, found = encoder_root(config, task), {}
     for camera in cameras:
-        trained = [folder / camera for folder in (encoder_dir(config, root), kept_encoder_dir(config, root))
-                   if encoder_is_finished(folder / camera, encoder_steps(config, camera))]
+        trained = [
+            folder / camera
+            for folder in (encoder_dir(config, root), kept_encoder_dir(config, root))
+            if encoder_is_finished(folder / camera, encoder_steps(config, camera))
+        ]
         if not trained:
             return None
         found[camera] = encoder_fingerprint(trained[0])
@@ -253,14 +262,25 @@ def _rounded(value: float | None) -> float | None:
     return None if value is None else round(value, 4)
 
 
-def train_config(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, root: Path, encoders: Path,
-                 steps: int | None = None) -> TrainConfig:
+def train_config(
+    config: ReproduceConfig, task: str, cell: CellSpec, seed: int, root: Path, encoders: Path, steps: int | None = None
+) -> TrainConfig:
     """A run's TrainConfig (`steps`: a budget grid's current cap)."""
-    policy = MurmConfig(method=cell.method, cameras=list(cell.cameras), encoder_dir=str(encoders),
-                        epsilon=cell_epsilon(cell, encoders), **cell.policy)
+    policy = MurmConfig(
+        method=cell.method,
+        cameras=list(cell.cameras),
+        encoder_dir=str(encoders),
+        epsilon=cell_epsilon(cell, encoders),
+        **cell.policy,
+    )
     return TrainConfig(
-        dataset=str(root), task=task, policy=policy, output_dir=str(run_dir(config, task, cell, seed)),
-        cache_dir=str(Path(config.work_dir) / "latent_cache"), seed=seed, device=config.device,
+        dataset=str(root),
+        task=task,
+        policy=policy,
+        output_dir=str(run_dir(config, task, cell, seed)),
+        cache_dir=str(Path(config.work_dir) / "latent_cache"),
+        seed=seed,
+        device=config.device,
         **config.train_settings(cell, steps),
     )
 
@@ -313,21 +333,37 @@ def set_aside(path: Path) -> Path:
 
 def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
     """Everything that decides what a run trains (not its name, grid or evaluation masks)."""
-    scales = {k: v for k, v in (("paper_epsilon", cell.paper_epsilon), ("epsilon_quantile", cell.epsilon_quantile)) if v}
+    scales = {
+        k: v for k, v in (("paper_epsilon", cell.paper_epsilon), ("epsilon_quantile", cell.epsilon_quantile)) if v
+    }
     dataset, encoders = dataset_root(config, task, cell).name, encoder_root(config, task).name
-    return json.loads(json.dumps({  # as it reads back from a result file
-        "task": task, "dataset": dataset, **({"encoder_dataset": encoders} if encoders != dataset else {}),
-        "method": cell.method, "cameras": list(cell.cameras), "epsilon": cell.epsilon, **scales,
-        "policy": policy_overrides(cell.method, cell.cameras, cell.policy), "vqvae": asdict(config.vqvae),
-        "train": asdict(config.train) | {"steps": config.cell_steps(cell)}, "seed": seed,
-        **({"budget": asdict(config.budget)} if config.budget else {}),
-        # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
-        "precision": str(resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))),
-    }))
+    return json.loads(
+        json.dumps(
+            {  # as it reads back from a result file
+                "task": task,
+                "dataset": dataset,
+                **({"encoder_dataset": encoders} if encoders != dataset else {}),
+                "method": cell.method,
+                "cameras": list(cell.cameras),
+                "epsilon": cell.epsilon,
+                **scales,
+                "policy": policy_overrides(cell.method, cell.cameras, cell.policy),
+                "vqvae": asdict(config.vqvae),
+                "train": asdict(config.train) | {"steps": config.cell_steps(cell)},
+                "seed": seed,
+                **({"budget": asdict(config.budget)} if config.budget else {}),
+                # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
+                "precision": str(
+                    resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))
+                ),
+            }
+        )
+    )
 
 
-def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[float],
-                       encoders: dict[str, str] | None) -> dict | None:
+def finished_elsewhere(
+    config: ReproduceConfig, recipe: dict, mask_ps: list[float], encoders: dict[str, str] | None
+) -> dict | None:
     """A result of another grid with the same recipe, trained on the very encoders given (by
     fingerprint; runs from before fingerprints were recorded are never taken) and evaluated
     at every masking level asked, cut down to those levels; None if there is none."""
@@ -351,7 +387,9 @@ def finished_elsewhere(config: ReproduceConfig, recipe: dict, mask_ps: list[floa
     return None
 
 
-def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int], steps: int | None = None) -> list[dict]:
+def train_run(
+    config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int], steps: int | None = None
+) -> list[dict]:
     """The training runs of a cell's `seeds` and their final evaluations (each resumed from its
     checkpoint, or read back when finished), side by side as one stacked model when there are
     several (`murm train` with seeds); their results, for the driver to store. `steps`: a
@@ -370,8 +408,9 @@ def train_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[in
     return [run_result(config, task, cell, root, encoders, summary, start) for summary in summaries]
 
 
-def test_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int], budget: int,
-             curves: list[dict]) -> list[dict]:
+def test_run(
+    config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int], budget: int, curves: list[dict]
+) -> list[dict]:
     """A budget grid's runs of a cell, tested once at `budget` from the policies they kept
     there; their results (the training's wall time and curve from `curves`, to the cap)."""
     root = ensure_dataset(collect_config(config, task, cell))
@@ -380,8 +419,15 @@ def test_run(config: ReproduceConfig, task: str, cell: CellSpec, seeds: list[int
     results = []
     for summary, trained in zip(test_kept(configs, budget), curves, strict=True):
         result = run_result(config, task, cell, root, encoders, summary | {"wall_s": trained["wall_s"]}, 0.0)
-        results.append(result | {"curve": trained["curve"], "budget": budget, "trained_to": trained["steps"],
-                                 "recipe": budget_recipe(result["recipe"], budget)})
+        results.append(
+            result
+            | {
+                "curve": trained["curve"],
+                "budget": budget,
+                "trained_to": trained["steps"],
+                "recipe": budget_recipe(result["recipe"], budget),
+            }
+        )
     return results
 
 
@@ -390,25 +436,37 @@ def budget_recipe(recipe: dict, budget: int) -> dict:
     return recipe | {"train": recipe["train"] | {"steps": budget}}
 
 
-def run_result(config: ReproduceConfig, task: str, cell: CellSpec, root: Path, encoders: Path, summary: dict,
-               start: float) -> dict:
+def run_result(
+    config: ReproduceConfig, task: str, cell: CellSpec, root: Path, encoders: Path, summary: dict, start: float
+) -> dict:
     """A finished run's result file, from its summary and its folder."""
     seed = summary["seed"]
     recipe = run_recipe(config, task, cell, seed)
     out = Path(summary["checkpoint"]).parents[2]
     epsilon = json.loads((Path(summary["checkpoint"]) / "config.json").read_text())["epsilon"]
     result = {
-        "experiment": config.name, "task": task, "cell": cell.label, "method": cell.method, "cameras": cell.cameras,
-        "seed": seed, "dataset": root.name, "steps": summary["steps"], "final": summary["final"],
+        "experiment": config.name,
+        "task": task,
+        "cell": cell.label,
+        "method": cell.method,
+        "cameras": cell.cameras,
+        "seed": seed,
+        "dataset": root.name,
+        "steps": summary["steps"],
+        "final": summary["final"],
         "final_validation": summary["final_validation"],
-        "epsilon": epsilon, **epsilon_scales(epsilon, cell.cameras, encoders),
+        "epsilon": epsilon,
+        **epsilon_scales(epsilon, cell.cameras, encoders),
         "encoders": {camera: encoder_fingerprint(encoders / camera) for camera in cell.cameras},
-        "validation_seeds": summary["validation_seeds"], "eval_seeds": summary["eval_seeds"],
+        "validation_seeds": summary["validation_seeds"],
+        "eval_seeds": summary["eval_seeds"],
         "demonstration_success": _demonstration_success(root),
         # the training run's own wall time over all its sittings (older runs: this call's)
         "wall_s": summary.get("wall_s", round(time.perf_counter() - start, 1)),
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
-        "hardware": hardware(), "curve": _read_curve(out / "eval.csv"), "recipe": recipe,
+        "hardware": hardware(),
+        "curve": _read_curve(out / "eval.csv"),
+        "recipe": recipe,
         # trained side by side with this many seeds (their shared wall time and steps/s above)
         "seeds_together": summary.get("seeds_together", 1),
     }
@@ -475,9 +533,14 @@ def _build_datasets(executor, unfinished: list[CollectConfig], workers: int) -> 
     for c in sorted(unfinished, key=lambda c: -c.episodes):
         largest.setdefault(c.recipe, c)
     todo = list(largest.values())
-    sharded = {c.root: shard_ranges(c.episodes, executor.shard_episodes) for c in todo
-               if executor.shard_episodes and not c.root.exists() and not noise_donors(c)
-               and not any(n >= c.episodes for n in finished_siblings(c))}
+    sharded = {
+        c.root: shard_ranges(c.episodes, executor.shard_episodes)
+        for c in todo
+        if executor.shard_episodes
+        and not c.root.exists()
+        and not noise_donors(c)
+        and not any(n >= c.episodes for n in finished_siblings(c))
+    }
     _run_all(executor, ensure_dataset, [(c,) for c in todo if c.root not in sharded], cpus=workers, gpus=0)
     shards = [(c, episodes) for c in todo if c.root in sharded for episodes in sharded[c.root]]
     _run_all(executor, collect_shard, shards, cpus=1, gpus=0)
@@ -534,8 +597,14 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
         return _run_grid(config, executor, out)
 
 
-def _run_budget_grid(config: ReproduceConfig, shipped: ReproduceConfig, executor, out: Path,
-                     grid_record: ReproduceConfig, grid: list[tuple]) -> Path:
+def _run_budget_grid(
+    config: ReproduceConfig,
+    shipped: ReproduceConfig,
+    executor,
+    out: Path,
+    grid_record: ReproduceConfig,
+    grid: list[tuple],
+) -> Path:
     """A budget grid (`budget`): every run to the cap on validation episodes, the cap doubled
     while a mean curve still rises at it, the budget chosen by the rule (budget.json,
     budget.md), then every run tested once at the budget (runs/)."""
@@ -544,25 +613,40 @@ def _run_budget_grid(config: ReproduceConfig, shipped: ReproduceConfig, executor
     # a later sitting starts at the cap an earlier one had reached
     cap = max(spec.cap, json.loads(decision_file.read_text())["cap"] if decision_file.exists() else 0)
     while True:
-        todo = [(shipped, task, cell, seed) for task, cell, seed in grid
-                if not _stored_at(curves_dir / result_path(config, task, cell, seed).name,
-                                  run_recipe(config, task, cell, seed), cap)]
-        needed = {c.root: c for _, task, cell, _ in todo for c in (collect_config(shipped, task, cell),
-                                                                    collect_config(shipped, task))}
+        todo = [
+            (shipped, task, cell, seed)
+            for task, cell, seed in grid
+            if not _stored_at(
+                curves_dir / result_path(config, task, cell, seed).name, run_recipe(config, task, cell, seed), cap
+            )
+        ]
+        needed = {
+            c.root: c
+            for _, task, cell, _ in todo
+            for c in (collect_config(shipped, task, cell), collect_config(shipped, task))
+        }
         build_datasets(executor, list(needed.values()), config.collection.workers)
-        build_encoders(executor, shipped, sorted({(encoder_root(shipped, task), camera)
-                                                  for _, task, cell, _ in todo for camera in cell.cameras}))
+        build_encoders(
+            executor,
+            shipped,
+            sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras}),
+        )
         jobs = [job + (cap,) for job in training_jobs(todo, together=config.stack_seeds)]
         started, finished = time.perf_counter(), 0
         for (_, task, cell, seeds, _), results in executor.map(train_run, jobs):
             for seed, result in zip(seeds, results, strict=True):
                 finished += 1
                 _store(curves_dir / result_path(config, task, cell, seed).name, result)
-                print(f"[{finished}/{len(todo)}] {task} {cell.label} seed {seed}: trained to {cap:,} updates "
-                      f"(validation only)" + remaining_time(time.perf_counter() - started, finished,
-                                                             len(todo) - finished), flush=True)
-        curves = {(task, cell.label, seed): read_result(curves_dir / result_path(config, task, cell, seed).name)
-                  for task, cell, seed in grid}
+                print(
+                    f"[{finished}/{len(todo)}] {task} {cell.label} seed {seed}: trained to {cap:,} updates "
+                    f"(validation only)"
+                    + remaining_time(time.perf_counter() - started, finished, len(todo) - finished),
+                    flush=True,
+                )
+        curves = {
+            (task, cell.label, seed): read_result(curves_dir / result_path(config, task, cell, seed).name)
+            for task, cell, seed in grid
+        }
         decision = choose_budget(spec, list(curves.values()), cap, len(config.seeds))
         write_atomic(decision_file, (json.dumps(decision, indent=1) + "\n").encode())
         write_atomic(out / "budget.md", budget_markdown(decision).encode())
@@ -572,11 +656,17 @@ def _run_budget_grid(config: ReproduceConfig, shipped: ReproduceConfig, executor
         print(f"{config.name}: a mean validation curve still rises at the cap; training every run on to {cap:,}")
     budget = decision["budget"]
     print(f"{config.name}: budget {budget:,} updates (budget.md); testing every run there", flush=True)
-    todo = [(shipped, task, cell, seed) for task, cell, seed in grid
-            if not _stored_at(result_path(config, task, cell, seed), budget_recipe(run_recipe(config, task, cell, seed),
-                                                                                   budget), budget)]
-    jobs = [(*job, budget, [curves[(job[1], job[2].label, seed)] for seed in job[3]])
-            for job in training_jobs(todo, together=True)]
+    todo = [
+        (shipped, task, cell, seed)
+        for task, cell, seed in grid
+        if not _stored_at(
+            result_path(config, task, cell, seed), budget_recipe(run_recipe(config, task, cell, seed), budget), budget
+        )
+    ]
+    jobs = [
+        (*job, budget, [curves[(job[1], job[2].label, seed)] for seed in job[3]])
+        for job in training_jobs(todo, together=True)
+    ]
     for (_, task, cell, seeds, _, _), results in executor.map(test_run, jobs):
         for seed, result in zip(seeds, results, strict=True):
             _store(result_path(config, task, cell, seed), result)
@@ -615,19 +705,33 @@ def _run_grid(config: ReproduceConfig, executor, out: Path) -> Path:
             if stored is not None and kept_as_finished(stored.get("recipe"), recipe, cell):
                 continue
             why = "it does not read (torn)" if stored is None else "its cell changed since it ran"
-            print(f"{path.name}: {why} (set aside in {set_aside(path).parent}); "
-                  "it trains again, from its checkpoint where the change allows", flush=True)
-        reused = None if config.timed else finished_elsewhere(config, recipe, list(cell.eval_mask_p),
-                                                              current_encoders(config, task, cell.cameras))
+            print(
+                f"{path.name}: {why} (set aside in {set_aside(path).parent}); "
+                "it trains again, from its checkpoint where the change allows",
+                flush=True,
+            )
+        reused = (
+            None
+            if config.timed
+            else finished_elsewhere(
+                config, recipe, list(cell.eval_mask_p), current_encoders(config, task, cell.cameras)
+            )
+        )
         if reused is not None:
             _store(path, reused | {"experiment": config.name, "cell": cell.label})
         else:
             todo.append((shipped, task, cell, seed))
-    needed = {c.root: c for _, task, cell, _ in todo for c in (collect_config(shipped, task, cell),
-                                                                collect_config(shipped, task))}
+    needed = {
+        c.root: c
+        for _, task, cell, _ in todo
+        for c in (collect_config(shipped, task, cell), collect_config(shipped, task))
+    }
     build_datasets(executor, list(needed.values()), config.collection.workers)
-    build_encoders(executor, shipped, sorted({(encoder_root(shipped, task), camera)
-                                              for _, task, cell, _ in todo for camera in cell.cameras}))
+    build_encoders(
+        executor,
+        shipped,
+        sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras}),
+    )
     if config.prepare_only:
         print(f"{config.name}: datasets and encoders ready; no run trained (prepare_only)", flush=True)
         return out
@@ -637,10 +741,16 @@ def _run_grid(config: ReproduceConfig, executor, out: Path) -> Path:
         for seed, result in zip(seeds, results, strict=True):
             finished += 1
             _store(result_path(config, task, cell, seed), result)
-            print(f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: " + ", ".join(
-                f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %"
-                for r in final_evaluations(result, config.report_split)) + f" ({config.report_split})"
-                + remaining_time(time.perf_counter() - started, finished, len(todo) - finished), flush=True)
+            print(
+                f"[{len(grid) - len(todo) + finished}/{len(grid)}] {task} {cell.label} seed {seed}: "
+                + ", ".join(
+                    f"masking {r['mask_p']:.0%} {100 * r['success_rate']:.0f} %"
+                    for r in final_evaluations(result, config.report_split)
+                )
+                + f" ({config.report_split})"
+                + remaining_time(time.perf_counter() - started, finished, len(todo) - finished),
+                flush=True,
+            )
     rows = write_tables(grid_record, grid_results(grid_record, out / "runs"), out)
     print(markdown_table(rows))
     return out

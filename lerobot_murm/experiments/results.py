@@ -16,8 +16,20 @@ import numpy as np
 from matplotlib import colormaps
 from matplotlib.figure import Figure
 
-COLUMNS = ["task", "cell", "method", "cameras", "mask_p", "success_mean", "success_std", "seeds",
-           "episodes_per_seed", "steps", "wall_s_mean", "train_steps_per_s"]
+COLUMNS = [
+    "task",
+    "cell",
+    "method",
+    "cameras",
+    "mask_p",
+    "success_mean",
+    "success_std",
+    "seeds",
+    "episodes_per_seed",
+    "steps",
+    "wall_s_mean",
+    "train_steps_per_s",
+]
 
 
 def final_evaluations(result: dict, split: str) -> list[dict]:
@@ -38,14 +50,22 @@ def aggregate(results: list[dict], split: str = "test") -> list[dict]:
     for (task, cell, mask_p), members in groups.items():
         rates = np.array([100 * final["success_rate"] for _, final in members])
         first = members[0][0]
-        rows.append({
-            "task": task, "cell": cell, "method": first["method"], "cameras": "+".join(first["cameras"]),
-            "mask_p": mask_p, "success_mean": round(float(rates.mean()), 2),
-            "success_std": round(float(rates.std(ddof=1)), 2) if len(rates) > 1 else None, "seeds": len(members),
-            "episodes_per_seed": members[0][1]["episodes"], "steps": first["steps"],
-            "wall_s_mean": round(float(np.mean([r["wall_s"] for r, _ in members])), 1),
-            "train_steps_per_s": round(float(np.mean([r["train_steps_per_s"] for r, _ in members])), 1),
-        })
+        rows.append(
+            {
+                "task": task,
+                "cell": cell,
+                "method": first["method"],
+                "cameras": "+".join(first["cameras"]),
+                "mask_p": mask_p,
+                "success_mean": round(float(rates.mean()), 2),
+                "success_std": round(float(rates.std(ddof=1)), 2) if len(rates) > 1 else None,
+                "seeds": len(members),
+                "episodes_per_seed": members[0][1]["episodes"],
+                "steps": first["steps"],
+                "wall_s_mean": round(float(np.mean([r["wall_s"] for r, _ in members])), 1),
+                "train_steps_per_s": round(float(np.mean([r["train_steps_per_s"] for r, _ in members])), 1),
+            }
+        )
     return rows
 
 
@@ -79,9 +99,11 @@ def read_table(path: Path) -> list[dict]:
         reader = csv.DictReader(f)
         missing = [c for c in COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
-            raise ValueError(f"{path} is not a grid table ({len(missing)} of its {len(COLUMNS)} columns missing, "
-                             f"'{missing[0]}' first); delete it and run `murm report` again to rebuild it from its "
-                             "runs")
+            raise ValueError(
+                f"{path} is not a grid table ({len(missing)} of its {len(COLUMNS)} columns missing, "
+                f"'{missing[0]}' first); delete it and run `murm report` again to rebuild it from its "
+                "runs"
+            )
         return list(reader)
 
 
@@ -151,8 +173,10 @@ def write_tables(config, results: list[dict], out: Path) -> list[dict]:
         writer.writerows(rows)
     table = markdown_table(rows)
     seeds = ", ".join(str(s) for s in sorted({r["seed"] for r in results}))
-    header = (f"# {config.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds {seeds}; "
-              f"{rows[0]['episodes_per_seed']} {config.report_split} episodes per seed and masking level.\n\n")
+    header = (
+        f"# {config.name}\n\nSuccess rate (%), mean ± sample std (ddof 1) over training seeds {seeds}; "
+        f"{rows[0]['episodes_per_seed']} {config.report_split} episodes per seed and masking level.\n\n"
+    )
     (out / "table.md").write_text(header + table)
     plot_curves(results, out / "curves.png")
     return rows

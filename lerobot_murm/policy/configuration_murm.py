@@ -154,8 +154,9 @@ class MurmConfig(PreTrainedConfig):
             raise ValueError(f"unknown dropout_scope {self.dropout_scope!r}; choose one of {list(DROPOUT_SCOPES)}")
         if self.dropped_q not in DROPPED_Q_MODES:
             raise ValueError(f"unknown dropped_q {self.dropped_q!r}; choose one of {list(DROPPED_Q_MODES)}")
-        if self.dropped_q == "excluded" and not (self.method == "separated_q" and self.view_dropout
-                                                 and self.dropout_scope == "all"):
+        if self.dropped_q == "excluded" and not (
+            self.method == "separated_q" and self.view_dropout and self.dropout_scope == "all"
+        ):
             raise ValueError("dropped_q 'excluded' needs separated_q with view_dropout and dropout_scope 'all'")
         if self.eval_mask_mode not in EVAL_MASK_MODES:
             raise ValueError(f"unknown eval_mask_mode {self.eval_mask_mode!r}; choose one of {list(EVAL_MASK_MODES)}")
@@ -256,9 +257,11 @@ class MurmConfig(PreTrainedConfig):
                             f"the policy needs {key}; the latent dataset has no codes of camera {camera!r}"
                         )
                     if tuple(self.input_features[key].shape) != (length,):
-                        raise ValueError(f"{key} has shape {tuple(self.input_features[key].shape)}; the {camera} "
-                                         f"encoder's {encoder.grid_size}x{encoder.grid_size} grid of codes packs "
-                                         f"into ({length},)")
+                        raise ValueError(
+                            f"{key} has shape {tuple(self.input_features[key].shape)}; the {camera} "
+                            f"encoder's {encoder.grid_size}x{encoder.grid_size} grid of codes packs "
+                            f"into ({length},)"
+                        )
             return
         visual = {k: ft for k, ft in self.input_features.items() if ft.type is FeatureType.VISUAL}
         for camera in self.cameras:

@@ -44,8 +44,13 @@ class Updates:
     or with a `graph`, `warmup` times eagerly (on a side stream on CUDA, as capture needs:
     these are real updates) and then captured once and replayed."""
 
-    def __init__(self, update: Callable[[], Tensor], graph: CudaGraph | None = None, warmup: int = 3,
-                 device: torch.device = torch.device("cpu")):
+    def __init__(
+        self,
+        update: Callable[[], Tensor],
+        graph: CudaGraph | None = None,
+        warmup: int = 3,
+        device: torch.device = torch.device("cpu"),
+    ):
         self.update, self.graph, self.warmup, self.device = update, graph, warmup, device
         self.calls, self._pending = 0, 0
         self._sum: Tensor | None = None

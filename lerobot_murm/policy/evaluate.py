@@ -66,16 +66,21 @@ def _make_worker_env(env_id: str, kwargs: dict, trainer_pid: int) -> gym.Env:
     return gym.make(env_id, **kwargs)
 
 
-def act_together(policies: list[MurmPolicy], batch: dict[str, torch.Tensor],
-                 actors: tuple[dict, dict] | None = None) -> torch.Tensor:
+def act_together(
+    policies: list[MurmPolicy], batch: dict[str, torch.Tensor], actors: tuple[dict, dict] | None = None
+) -> torch.Tensor:
     """Deterministic actions of policies that share their encoders, for equal consecutive groups
     of the batch's rows (group k: policy k, masked by policy k's own settings and draws). One
     encoder pass for all rows; the actors run as one batched network (`actors`, their weights
     stacked by `torch.func.stack_module_state`; made here if not given)."""
     seeds = len(policies)
     latents = policies[0].observation_latents(batch).unflatten(0, (seeds, -1))
-    states = torch.stack([p.masked_state(z, p.config.eval_mask_p, p.config.eval_mask_mode)
-                          for p, z in zip(policies, latents, strict=True)])
+    states = torch.stack(
+        [
+            p.masked_state(z, p.config.eval_mask_p, p.config.eval_mask_mode)
+            for p, z in zip(policies, latents, strict=True)
+        ]
+    )
     weights = actors or torch.func.stack_module_state([p.actor for p in policies])
     return torch.func.functional_call(policies[0].actor, weights, (states.flatten(-2),)).flatten(0, 1)
 
@@ -100,7 +105,8 @@ class Evaluator:
         kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
         self.envs = gym.vector.AsyncVectorEnv(
             [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs * policies)],
-            context="fork", worker=_worker,
+            context="fork",
+            worker=_worker,
         )
 
     def close(self) -> None:
@@ -123,8 +129,9 @@ class Evaluator:
         return batch
 
     @torch.no_grad()
-    def evaluate(self, policies: list[MurmPolicy], seeds: list[int], mask_p: float = 0.0,
-                 mask_mode: str = "paper") -> list[EvalResult]:
+    def evaluate(
+        self, policies: list[MurmPolicy], seeds: list[int], mask_p: float = 0.0, mask_mode: str = "paper"
+    ) -> list[EvalResult]:
         """Each policy's success on the episodes `seeds`, as if it were evaluated alone; the
         seconds are those of the whole evaluation, which they share."""
         if len(policies) != self.policies:

@@ -56,31 +56,44 @@ def advantage_weights(advantage: torch.Tensor, beta: float, max_weight: float) -
     return torch.exp(beta * advantage.detach()).clamp(max=max_weight)
 
 
-def value_loss(value: nn.Module, state: torch.Tensor, q_target: torch.Tensor,
-               expectile: float) -> tuple[torch.Tensor, torch.Tensor]:
+def value_loss(
+    value: nn.Module, state: torch.Tensor, q_target: torch.Tensor, expectile: float
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Eq. 6 (eq. 9 with separated Q): L_V = E[L_2^tau(min(Q^_1, Q^_2)(s, a) - V(s))], the
     target critics' value `q_target` against V(s). Returns the loss and V(s)."""
     v = value(state.flatten(-2)).squeeze(-1)
     return expectile_loss(q_target - v, expectile), v
 
 
-def td_target(value: nn.Module, reward: torch.Tensor, done: torch.Tensor, next_state: torch.Tensor,
-              discount: float) -> torch.Tensor:
+def td_target(
+    value: nn.Module, reward: torch.Tensor, done: torch.Tensor, next_state: torch.Tensor, discount: float
+) -> torch.Tensor:
     """r + gamma (1 - done) V(s'), the regression target of eq. 7 and 10."""
     next_v = value(next_state.flatten(-2)).squeeze(-1)
     return reward + discount * (1.0 - done) * next_v
 
 
-def critic_loss(critic: DoubleQ, critic_input: torch.Tensor, action: torch.Tensor, q_heads: torch.Tensor | None,
-                target: torch.Tensor) -> torch.Tensor:
+def critic_loss(
+    critic: DoubleQ,
+    critic_input: torch.Tensor,
+    action: torch.Tensor,
+    q_heads: torch.Tensor | None,
+    target: torch.Tensor,
+) -> torch.Tensor:
     """Eq. 7 (eq. 10 with separated Q, Q the mean of eq. 11): L_Q = E[(target - Q(s, a))^2] for
     each of the clipped double Q's two sets, their MSEs summed."""
     q = critic(critic_input, action, q_heads)
     return (q - target.unsqueeze(-2)).pow(2).mean(-1).sum(-1)
 
 
-def actor_loss(actor: GaussianPolicy, state: torch.Tensor, action: torch.Tensor, advantage: torch.Tensor,
-               beta: float, max_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
+def actor_loss(
+    actor: GaussianPolicy,
+    state: torch.Tensor,
+    action: torch.Tensor,
+    advantage: torch.Tensor,
+    beta: float,
+    max_weight: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Eq. 8: L_pi = -E[exp(beta (Q^(s, a) - V(s))) log pi(a | s)], the weights clipped at
     `max_weight` (`advantage_weights`). Returns the loss and the weights."""
     weights = advantage_weights(advantage, beta, max_weight)
@@ -99,8 +112,14 @@ class Views:
     q_heads: torch.Tensor | None  # (B, cameras) bool: the Q heads each row averages (None: all of them)
 
 
-def drop_views(state: torch.Tensor, next_state: torch.Tensor, keep: torch.Tensor | None, separated_q: bool,
-               scope: str = "all", dropped_q: str = "zeros") -> Views:
+def drop_views(
+    state: torch.Tensor,
+    next_state: torch.Tensor,
+    keep: torch.Tensor | None,
+    separated_q: bool,
+    scope: str = "all",
+    dropped_q: str = "zeros",
+) -> Views:
     """The dropout method (paper 4.3): the (z_k, zg_k) pairs `keep` drops are zeroed, the same
     cameras in s_t and s_t+1 (`keep` None: no dropout). `scope` "all" (the paper) shows the
     dropped state to V, Q and the policy, "actor" to the policy alone. `dropped_q` "excluded"
@@ -127,8 +146,9 @@ def polyak_update(target: nn.Module, source: nn.Module, tau: float) -> None:
         t.lerp_(s, tau)
 
 
-def camera_keep_mask(batch: int, cameras: int, p: float, generator: torch.Generator | None = None,
-                     device: torch.device | str = "cpu") -> torch.Tensor:
+def camera_keep_mask(
+    batch: int, cameras: int, p: float, generator: torch.Generator | None = None, device: torch.device | str = "cpu"
+) -> torch.Tensor:
     """(B, cameras) bool: True keeps a camera. Each dropped with probability p; a row that
     would drop every camera keeps them all (the paper's rule)."""
     keep = torch.rand(batch, cameras, generator=generator, device=device) >= p
@@ -215,8 +235,9 @@ class DoubleQ(nn.Module):
 
 
 class GaussianPolicy(nn.Module):
-    def __init__(self, state_dim: int, action_dim: int, hidden: int, layers: int,
-                 log_std_min: float, log_std_max: float):
+    def __init__(
+        self, state_dim: int, action_dim: int, hidden: int, layers: int, log_std_min: float, log_std_max: float
+    ):
         super().__init__()
         self.mean = mlp(state_dim, hidden, layers, action_dim)
         self.log_std_logit = nn.Parameter(torch.zeros(action_dim))  # starts mid-range

@@ -13,15 +13,17 @@ def read_run_csv(path: Path) -> list[dict[str, float | str]]:
     if not path.exists():
         return []
     with path.open() as f:
-        return [{k: v if k in ("split", "mask_mode") else float(v) for k, v in row.items()}
-                for row in csv.DictReader(f)]
+        return [
+            {k: v if k in ("split", "mask_mode") else float(v) for k, v in row.items()} for row in csv.DictReader(f)
+        ]
 
 
 def validation_curve(eval_rows: list[dict]) -> list[dict]:
     """The learning curve: validation evaluations under the paper's masking (the test rows
     are for reporting only and are never plotted against training)."""
-    return [r for r in eval_rows
-            if r.get("split", "validation") == "validation" and r.get("mask_mode", "paper") == "paper"]
+    return [
+        r for r in eval_rows if r.get("split", "validation") == "validation" and r.get("mask_mode", "paper") == "paper"
+    ]
 
 
 def plot_learning_curve(run_dir: Path) -> Path:
@@ -32,8 +34,12 @@ def plot_learning_curve(run_dir: Path) -> Path:
     ax_success, ax_loss = fig.subplots(1, 2)
     for mask_p in sorted({row["mask_p"] for row in evals}):
         rows = [r for r in evals if r["mask_p"] == mask_p]
-        ax_success.plot([r["step"] for r in rows], [100 * r["success_rate"] for r in rows], marker="o",
-                        label=f"masking {mask_p:.0%}")
+        ax_success.plot(
+            [r["step"] for r in rows],
+            [100 * r["success_rate"] for r in rows],
+            marker="o",
+            label=f"masking {mask_p:.0%}",
+        )
     ax_success.set(xlabel="gradient steps", ylabel="success rate (%)", ylim=(-2, 102), title="validation episodes")
     if evals:
         ax_success.legend()

@@ -152,8 +152,10 @@ class MurmPolicy(PreTrainedPolicy):
     def observation_latents(self, batch: dict[str, Tensor]) -> Tensor:
         """(B, cameras, 2 * latent) raw (z, zg) latents of an observation: the encoders' work,
         which the seeds of a stack (one set of encoders) do once for all their episodes."""
-        pairs = [torch.cat([self.encode(c, batch[image_key(c)]), self.encode(c, batch[goal_image_key(c)])], dim=-1)
-                 for c in self.cameras]
+        pairs = [
+            torch.cat([self.encode(c, batch[image_key(c)]), self.encode(c, batch[goal_image_key(c)])], dim=-1)
+            for c in self.cameras
+        ]
         return torch.stack(pairs, dim=1)
 
     def masked_state(self, latents: Tensor, mask_p: float = 0.0, mask_mode: str = "paper") -> Tensor:
@@ -224,7 +226,9 @@ class MurmPolicy(PreTrainedPolicy):
             self.normalize(transition[TRANSITION_STATE]).to(dtype),
             self.normalize(transition[TRANSITION_NEXT_STATE]).to(dtype),
             transition[TRANSITION_KEEP] if c.view_dropout else None,
-            separated_q=c.method == "separated_q", scope=c.dropout_scope, dropped_q=c.dropped_q,
+            separated_q=c.method == "separated_q",
+            scope=c.dropout_scope,
+            dropped_q=c.dropped_q,
         )
         action, reward, done = transition[TRANSITION_ACTION], transition[TRANSITION_REWARD], transition[TRANSITION_DONE]
         with torch.no_grad():
@@ -235,9 +239,12 @@ class MurmPolicy(PreTrainedPolicy):
                 target = target.clamp(-len(self.cameras) / (1 - c.discount), 0.0)
         value_loss, v = iql.value_loss(self.value, views.state, q_target, c.expectile)
         critic_loss = iql.critic_loss(self.critic, views.critic, action, views.q_heads, target)
-        actor_loss, weights = iql.actor_loss(self.actor, views.actor, action, q_target - v, c.temperature,
-                                             c.max_advantage_weight)
+        actor_loss, weights = iql.actor_loss(
+            self.actor, views.actor, action, q_target - v, c.temperature, c.max_advantage_weight
+        )
         loss = value_loss + critic_loss + actor_loss
-        logged = torch.stack([value_loss, critic_loss, actor_loss, q_target.mean(-1), v.mean(-1), reward.mean(-1),
-                              weights.mean(-1)], dim=-1).detach()
+        logged = torch.stack(
+            [value_loss, critic_loss, actor_loss, q_target.mean(-1), v.mean(-1), reward.mean(-1), weights.mean(-1)],
+            dim=-1,
+        ).detach()
         return loss, logged

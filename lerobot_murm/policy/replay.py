@@ -54,9 +54,14 @@ class Batch:
     keep: torch.Tensor  # (B, cameras) bool: the cameras view dropout keeps (all without dropout)
 
     def transition(self) -> dict[str, torch.Tensor]:
-        return {TRANSITION_STATE: self.state, TRANSITION_NEXT_STATE: self.next_state,
-                TRANSITION_ACTION: self.action, TRANSITION_REWARD: self.reward, TRANSITION_DONE: self.done,
-                TRANSITION_KEEP: self.keep}
+        return {
+            TRANSITION_STATE: self.state,
+            TRANSITION_NEXT_STATE: self.next_state,
+            TRANSITION_ACTION: self.action,
+            TRANSITION_REWARD: self.reward,
+            TRANSITION_DONE: self.done,
+            TRANSITION_KEEP: self.keep,
+        }
 
     def split(self, seeds: int) -> Batch:
         """(seeds * B, ...) fields as (seeds, B, ...): one batch per seed of a stack."""
@@ -74,8 +79,15 @@ class Draws:
 
 
 class LatentReplay:
-    def __init__(self, caches: list[LatentCache], actions: np.ndarray, epsilons: list[float],
-                 her_ratio: float, device: torch.device | str = "cpu", dropout_p: float = 0.0):
+    def __init__(
+        self,
+        caches: list[LatentCache],
+        actions: np.ndarray,
+        epsilons: list[float],
+        her_ratio: float,
+        device: torch.device | str = "cpu",
+        dropout_p: float = 0.0,
+    ):
         if not caches:
             raise ValueError("at least one camera's latent cache is required")
         episode_index = caches[0].episode_index
@@ -141,8 +153,10 @@ class LatentReplay:
         z = torch.stack([latents[rows] for latents in self.latents], dim=1)
         z_next = torch.stack([latents[next_rows] for latents in self.latents], dim=1)
         z_goal = torch.stack(
-            [torch.where(relabel.unsqueeze(1), latents[future], goals[episodes])
-             for latents, goals in zip(self.latents, self.goal_latents, strict=True)],
+            [
+                torch.where(relabel.unsqueeze(1), latents[future], goals[episodes])
+                for latents, goals in zip(self.latents, self.goal_latents, strict=True)
+            ],
             dim=1,
         )
         return Batch(
@@ -158,8 +172,9 @@ class LatentReplay:
         )
 
 
-def replay_for_dataset(config: MurmConfig, dataset: LeRobotDataset, cache_dir: Path | None,
-                       device: torch.device | str = "cpu") -> LatentReplay:
+def replay_for_dataset(
+    config: MurmConfig, dataset: LeRobotDataset, cache_dir: Path | None, device: torch.device | str = "cpu"
+) -> LatentReplay:
     """The replay of `config.cameras` over every row of `dataset`, for either trainer.
 
     A latent dataset (`murm encode --to-dataset`) gives its codes; a dataset of images is
@@ -172,9 +187,17 @@ def replay_for_dataset(config: MurmConfig, dataset: LeRobotDataset, cache_dir: P
         fingerprints = {c: encoder_fingerprint(encoder_dir / c) for c in config.cameras} if config.encoder_dir else None
         caches = read_latent_caches(dataset, config.cameras, fingerprints)
     else:
-        caches = [build_latent_cache(dataset.repo_id, dataset.root, encoder_dir / c, cache_dir, str(device))
-                  for c in config.cameras]
+        caches = [
+            build_latent_cache(dataset.repo_id, dataset.root, encoder_dir / c, cache_dir, str(device))
+            for c in config.cameras
+        ]
     actions = dataset.hf_dataset.with_format("arrow").select_columns([features.ACTION])[:][features.ACTION]
     actions = np.array(actions.combine_chunks().flatten(), np.float32).reshape(len(dataset), -1)
-    return LatentReplay(caches, actions, config.epsilon, config.her_ratio, device=device,
-                        dropout_p=config.dropout_p if config.view_dropout else 0.0)
+    return LatentReplay(
+        caches,
+        actions,
+        config.epsilon,
+        config.her_ratio,
+        device=device,
+        dropout_p=config.dropout_p if config.view_dropout else 0.0,
+    )

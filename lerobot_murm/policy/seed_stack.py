@@ -116,9 +116,15 @@ class SeedStack:
         """Seed k's part of the optimizer state, as its lone optimizer's `state_dict()`."""
         state = self.optimizer.state_dict()
         # contiguous: fused Adam walks a moment and its parameter element by element in memory order
-        per_param = {i: {key: (value if key == "step" else self._stacked_layout(self._optimized[i], value[k]))
-                         .clone(memory_format=torch.contiguous_format) for key, value in moments.items()}
-                     for i, moments in state["state"].items()}
+        per_param = {
+            i: {
+                key: (value if key == "step" else self._stacked_layout(self._optimized[i], value[k])).clone(
+                    memory_format=torch.contiguous_format
+                )
+                for key, value in moments.items()
+            }
+            for i, moments in state["state"].items()
+        }
         return {"state": per_param, "param_groups": state["param_groups"]}
 
     def load_optimizer_states(self, states: list[dict]) -> None:
@@ -128,12 +134,18 @@ class SeedStack:
         first = states[0]["state"]
         for s in states[1:]:
             if s["state"].keys() != first.keys() or any(
-                    not torch.equal(s["state"][i]["step"], first[i]["step"]) for i in first):
+                not torch.equal(s["state"][i]["step"], first[i]["step"]) for i in first
+            ):
                 raise ValueError("the seeds' optimizer states are at different steps; a stack trains in lockstep")
-        stacked = {i: {key: value if key == "step" else
-                       torch.stack([self._stacked_layout(self._optimized[i], s["state"][i][key]) for s in states])
-                       for key, value in moments.items()}
-                   for i, moments in first.items()}
+        stacked = {
+            i: {
+                key: value
+                if key == "step"
+                else torch.stack([self._stacked_layout(self._optimized[i], s["state"][i][key]) for s in states])
+                for key, value in moments.items()
+            }
+            for i, moments in first.items()
+        }
         self.optimizer.load_state_dict({"state": stacked, "param_groups": states[0]["param_groups"]})
 
 

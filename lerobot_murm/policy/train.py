@@ -110,25 +110,39 @@ class TrainConfig:
             raise ValueError("the config needs a `policy:` section with `type: murm`")
         if self.task not in TASK_NAMES:
             raise ValueError(f"unknown task {self.task!r}; valid tasks: {list(TASK_NAMES)}")
-        counts = {"steps": self.steps, "batch_size": self.batch_size, "eval_every": self.eval_every,
-                  "log_every": self.log_every, "eval_episodes": self.eval_episodes,
-                  "final_eval_episodes": self.final_eval_episodes, "eval_envs": self.eval_envs}
+        counts = {
+            "steps": self.steps,
+            "batch_size": self.batch_size,
+            "eval_every": self.eval_every,
+            "log_every": self.log_every,
+            "eval_episodes": self.eval_episodes,
+            "final_eval_episodes": self.final_eval_episodes,
+            "eval_envs": self.eval_envs,
+        }
         for name, value in counts.items():
             if value < 1:
                 raise ValueError(f"{name} must be at least 1, got {value}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.keep_every < 0 or (self.keep_every and self.keep_every % self.eval_every):
-            raise ValueError(f"keep_every must be 0 or a multiple of eval_every ({self.eval_every}), got {self.keep_every}")
+            raise ValueError(
+                f"keep_every must be 0 or a multiple of eval_every ({self.eval_every}), got {self.keep_every}"
+            )
         if (self.seeds and min(self.seeds) < 0) or len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"seeds must be distinct and >= 0, got {self.seeds}")
         if not self.eval_mask_p or not all(0.0 <= p < 1.0 for p in self.eval_mask_p):
             raise ValueError(f"eval_mask_p must be masking levels in [0, 1), got {self.eval_mask_p}")
-        validation = range(self.validation_seed, self.validation_seed + max(self.eval_episodes, self.final_eval_episodes))
+        validation = range(
+            self.validation_seed, self.validation_seed + max(self.eval_episodes, self.final_eval_episodes)
+        )
         test = range(self.test_seed, self.test_seed + self.final_eval_episodes)
-        if min(self.validation_seed, self.test_seed) < 0 or (validation.start < test.stop and test.start < validation.stop):
-            raise ValueError(f"validation seeds {validation.start}-{validation.stop - 1} and test seeds "
-                             f"{test.start}-{test.stop - 1} must be non-negative and disjoint")
+        if min(self.validation_seed, self.test_seed) < 0 or (
+            validation.start < test.stop and test.start < validation.stop
+        ):
+            raise ValueError(
+                f"validation seeds {validation.start}-{validation.stop - 1} and test seeds "
+                f"{test.start}-{test.stop - 1} must be non-negative and disjoint"
+            )
 
 
 def build_policy(config: MurmConfig, dataset, device: torch.device) -> MurmPolicy:
@@ -146,8 +160,9 @@ def transition_batch(replay: LatentReplay, batch_size: int, generator: torch.Gen
     return replay.sample(batch_size, generator).transition()
 
 
-def save_checkpoint(folder: Path, policy: MurmPolicy, optimizer_state: dict, step: int, generator: torch.Generator,
-                    elapsed_s: float) -> None:
+def save_checkpoint(
+    folder: Path, policy: MurmPolicy, optimizer_state: dict, step: int, generator: torch.Generator, elapsed_s: float
+) -> None:
     """Write the next `folder` beside it, then swap it in (`checkpointing.swap_in`): a crash at
     any point leaves one complete checkpoint, which the next run finds (`checkpointing.recover`)."""
     tmp = staging_folder(folder)
@@ -186,8 +201,10 @@ def seed_configs(config: TrainConfig) -> list[TrainConfig]:
     """One config per seed: `seeds` each in output_dir/seed<k>, else `seed` in output_dir."""
     if not config.seeds:
         return [config]
-    return [replace(config, seed=seed, seeds=[], output_dir=str(Path(config.output_dir) / f"seed{seed}"))
-            for seed in config.seeds]
+    return [
+        replace(config, seed=seed, seeds=[], output_dir=str(Path(config.output_dir) / f"seed{seed}"))
+        for seed in config.seeds
+    ]
 
 
 def finished_summary(config: TrainConfig) -> dict | None:
@@ -200,8 +217,10 @@ def finished_summary(config: TrainConfig) -> dict | None:
     if summary["steps"] == config.steps:
         return summary
     if summary["steps"] > config.steps:
-        raise CheckpointError(f"{config.output_dir} is trained to {summary['steps']} steps, more than the "
-                              f"{config.steps} asked; move it away or set another output_dir")
+        raise CheckpointError(
+            f"{config.output_dir} is trained to {summary['steps']} steps, more than the "
+            f"{config.steps} asked; move it away or set another output_dir"
+        )
     finished.rename(finished.with_name(f"final_eval_{summary['steps']}.json"))
     return None
 
@@ -346,9 +365,17 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
             policies = updater.write_back()
             for mask_p, mode in levels:
                 for own, result in zip(rows, evaluator.evaluate(policies, eval_seeds, mask_p, mode), strict=True):
-                    own.append({"step": at_step, "mask_p": round(mask_p, 4), "success_rate": result.success_rate,
-                                "episodes": len(eval_seeds), "seconds": round(result.seconds, 1), "split": split,
-                                "mask_mode": mode})
+                    own.append(
+                        {
+                            "step": at_step,
+                            "mask_p": round(mask_p, 4),
+                            "success_rate": result.success_rate,
+                            "episodes": len(eval_seeds),
+                            "seconds": round(result.seconds, 1),
+                            "split": split,
+                            "mask_mode": mode,
+                        }
+                    )
             return rows
 
         seeds = evaluation_seeds(config.eval_episodes, config.validation_seed)
@@ -386,8 +413,11 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
             validation_seeds = evaluation_seeds(config.final_eval_episodes, config.validation_seed)
             final_validation = run_evaluation(loop.step, validation_seeds, "validation", config.eval_authors_masking)
             test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
-            final = (run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking) if config.final_test
-                     else [[] for _ in runs])
+            final = (
+                run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking)
+                if config.final_test
+                else [[] for _ in runs]
+            )
             if config.keep_every:
                 for run in runs:
                     run.keep(loop.step)
@@ -430,31 +460,50 @@ def test_kept(configs: list[TrainConfig], step: int) -> list[dict]:
             raise CheckpointError(f"no policy kept at step {step}: {', '.join(missing)} (train with keep_every)")
         start = time.perf_counter()
         policies = [MurmPolicy.from_pretrained(path).to(device) for path in kept]
-        levels = [(p, "paper") for p in first.eval_mask_p] + ([(1 / 3, "authors")] if first.eval_authors_masking else [])
+        levels = [(p, "paper") for p in first.eval_mask_p] + (
+            [(1 / 3, "authors")] if first.eval_authors_masking else []
+        )
         test_seeds = evaluation_seeds(first.final_eval_episodes, first.test_seed)
         image_size = policies[0].config.encoder_config(policies[0].config.cameras[0]).image_size
         rows: list[list[dict]] = [[] for _ in configs]
         with Evaluator(first.task, policies[0].config.cameras, image_size, first.eval_envs, len(policies)) as evaluator:
             for mask_p, mode in levels:
                 for own, result in zip(rows, evaluator.evaluate(policies, test_seeds, mask_p, mode), strict=True):
-                    own.append({"step": step, "mask_p": round(mask_p, 4), "success_rate": result.success_rate,
-                                "episodes": len(test_seeds), "seconds": round(result.seconds, 1), "split": "test",
-                                "mask_mode": mode})
+                    own.append(
+                        {
+                            "step": step,
+                            "mask_p": round(mask_p, 4),
+                            "success_rate": result.success_rate,
+                            "episodes": len(test_seeds),
+                            "seconds": round(result.seconds, 1),
+                            "split": "test",
+                            "mask_mode": mode,
+                        }
+                    )
         summaries = []
         for config, path, test_rows in zip(configs, stored, rows, strict=True):
-            validation = [r | {"step": int(r["step"]), "episodes": int(r["episodes"])}
-                          for r in read_run_csv(Path(config.output_dir) / "eval.csv")
-                          if r["split"] == "validation" and r["step"] == step]
+            validation = [
+                r | {"step": int(r["step"]), "episodes": int(r["episodes"])}
+                for r in read_run_csv(Path(config.output_dir) / "eval.csv")
+                if r["split"] == "validation" and r["step"] == step
+            ]
             if {r["episodes"] for r in validation} != {first.final_eval_episodes}:
-                raise CheckpointError(f"{config.output_dir}/eval.csv has no validation rows of "
-                                      f"{first.final_eval_episodes} episodes at step {step}")
+                raise CheckpointError(
+                    f"{config.output_dir}/eval.csv has no validation rows of "
+                    f"{first.final_eval_episodes} episodes at step {step}"
+                )
             summary = {
-                "method": first.policy.method, "cameras": first.policy.cameras, "task": first.task, "steps": step,
+                "method": first.policy.method,
+                "cameras": first.policy.cameras,
+                "task": first.task,
+                "steps": step,
                 "seed": config.seed,
                 "validation_seeds": [first.validation_seed, first.validation_seed + first.final_eval_episodes - 1],
                 "eval_seeds": [test_seeds[0], test_seeds[-1]],
-                "final_validation": [{k: r[k] for k in EVAL_COLUMNS} for r in validation], "final": test_rows,
-                "checkpoint": str(kept[configs.index(config)]), "test_s": round(time.perf_counter() - start, 1),
+                "final_validation": [{k: r[k] for k in EVAL_COLUMNS} for r in validation],
+                "final": test_rows,
+                "checkpoint": str(kept[configs.index(config)]),
+                "test_s": round(time.perf_counter() - start, 1),
             }
             write_atomic(path, (json.dumps(summary, indent=2) + "\n").encode())
             summaries.append(summary)

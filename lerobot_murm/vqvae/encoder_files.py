@@ -63,7 +63,8 @@ def check_encoder(directory: Path) -> dict:
     config, weights = directory / CONFIG_FILE, directory / WEIGHTS_FILE
     if not config.exists() and not weights.exists():
         raise FileNotFoundError(
-            f"no VQ-VAE checkpoint in {directory} (no {CONFIG_FILE}); train one with murm train-vqvae")
+            f"no VQ-VAE checkpoint in {directory} (no {CONFIG_FILE}); train one with murm train-vqvae"
+        )
     for path in (config, weights):
         if not path.exists():
             raise incomplete(directory, f"{path.name} missing")

@@ -36,7 +36,11 @@ LATENTS_FILE = "meta/murm_latents.json"
 
 
 def write_latent_dataset(
-    dataset: LeRobotDataset, caches: list[LatentCache], encoder_dirs: list[Path], out: Path, repo_id: str,
+    dataset: LeRobotDataset,
+    caches: list[LatentCache],
+    encoder_dirs: list[Path],
+    out: Path,
+    repo_id: str,
     command: str = "",
 ) -> LeRobotDataset:
     """`dataset` with each cache's camera as codes and every image stream removed, written to `out`;
@@ -44,8 +48,10 @@ def write_latent_dataset(
     table = dataset.hf_dataset.with_format("arrow").select_columns(["episode_index", "frame_index"])[:]
     episode_index = table["episode_index"].to_numpy()
     for cache in caches:
-        if not (np.array_equal(cache.episode_index, episode_index)
-                and np.array_equal(cache.frame_index, table["frame_index"].to_numpy())):
+        if not (
+            np.array_equal(cache.episode_index, episode_index)
+            and np.array_equal(cache.frame_index, table["frame_index"].to_numpy())
+        ):
             raise ValueError(f"the {cache.camera} latent cache does not match the rows of {dataset.root}")
     added = {}
     for cache in caches:
@@ -77,8 +83,9 @@ def write_latent_dataset(
     return latent
 
 
-def read_latent_caches(dataset: LeRobotDataset, cameras: list[str],
-                       encoder_fingerprints: dict[str, str] | None = None) -> list[LatentCache]:
+def read_latent_caches(
+    dataset: LeRobotDataset, cameras: list[str], encoder_fingerprints: dict[str, str] | None = None
+) -> list[LatentCache]:
     """The cameras' codes of every row, as the latent caches the replay reads.
 
     With `encoder_fingerprints`, codes made by other encoders than these are refused.
@@ -102,14 +109,18 @@ def read_latent_caches(dataset: LeRobotDataset, cameras: list[str],
         if expected != info["encoder_fingerprint"]:
             raise ValueError(f"the {camera} codes in {dataset.root} come from another encoder than the policy's")
         grid, codebook = VQVAEConfig(**info["encoder"]).grid_size, np.asarray(info["codebook"], np.float32)
-        caches.append(LatentCache(
-            camera=camera,
-            indices=_codes(table, latent_key(camera), grid, len(codebook)),
-            goal_indices=_codes(table, latent_goal_key(camera), grid, len(codebook))[np.flatnonzero(frame_index == 0)],
-            codebook=codebook,
-            episode_index=episode_index,
-            frame_index=frame_index,
-        ))
+        caches.append(
+            LatentCache(
+                camera=camera,
+                indices=_codes(table, latent_key(camera), grid, len(codebook)),
+                goal_indices=_codes(table, latent_goal_key(camera), grid, len(codebook))[
+                    np.flatnonzero(frame_index == 0)
+                ],
+                codebook=codebook,
+                episode_index=episode_index,
+                frame_index=frame_index,
+            )
+        )
     return caches
 
 

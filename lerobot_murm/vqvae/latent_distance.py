@@ -76,8 +76,10 @@ def paper_epsilon_on_our_scale(paper_epsilon: float, stats: dict) -> float:
     if paper_epsilon <= 0:
         raise ValueError(f"a paper-scale epsilon must be positive, got {paper_epsilon}")
     if stats["suggested_epsilon"] <= 0:
-        raise ValueError(f"the {stats['camera']} encoder's suggested epsilon is 0 (its frames encode alike): "
-                         "there is no scale to map the paper's epsilon to")
+        raise ValueError(
+            f"the {stats['camera']} encoder's suggested epsilon is 0 (its frames encode alike): "
+            "there is no scale to map the paper's epsilon to"
+        )
     return paper_epsilon / PAPER_CHOSEN_EPSILON * float(stats["suggested_epsilon"])
 
 

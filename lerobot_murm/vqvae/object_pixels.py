@@ -49,8 +49,10 @@ def resimulate_object_frames(root: Path, episodes: list[int], cameras: list[str]
     with the object's mask."""
     recipe = read_recipe(Path(root))
     if recipe is None:
-        raise ValueError(f"{root} has no collection recipe (meta/murm_collection.json): only a dataset made by "
-                         "`murm collect` can be simulated again")
+        raise ValueError(
+            f"{root} has no collection recipe (meta/murm_collection.json): only a dataset made by "
+            "`murm collect` can be simulated again"
+        )
     missing = [c for c in cameras if c not in recipe.cameras]
     if missing:
         raise ValueError(f"the dataset at {root} has no camera(s) {missing}; its cameras: {list(recipe.cameras)}")
@@ -120,16 +122,19 @@ def object_metrics(errors: np.ndarray, masks: np.ndarray) -> dict:
     }
 
 
-def check_encoders(repo_id: str, root: Path | None, encoder_dirs: list[Path], max_episodes: int | None = None,
-                   device: str = "cpu") -> list[dict]:
+def check_encoders(
+    repo_id: str, root: Path | None, encoder_dirs: list[Path], max_episodes: int | None = None, device: str = "cpu"
+) -> list[dict]:
     """For each encoder, its held-out episodes' object-pixel metrics, written with a figure
     beside the checkpoint (`object_pixels.json`, `object_reconstructions.png`)."""
     device = resolve_device(device)
     models = {Path(d): VQVAE.load(Path(d), device=device) for d in encoder_dirs}  # a torn encoder fails first
     dataset = open_dataset(repo_id, root)
     all_episodes = np.arange(dataset.meta.total_episodes)
-    held = {d: heldout_episodes(all_episodes, m.config.holdout_fraction, m.config.seed)[:max_episodes]
-            for d, m in models.items()}
+    held = {
+        d: heldout_episodes(all_episodes, m.config.holdout_fraction, m.config.seed)[:max_episodes]
+        for d, m in models.items()
+    }
     episodes = sorted({int(e) for chosen in held.values() for e in chosen})
     cameras = list(dict.fromkeys(m.config.camera for m in models.values()))
     frames = resimulate_object_frames(Path(dataset.root), episodes, cameras)
@@ -139,17 +144,23 @@ def check_encoders(repo_id: str, root: Path | None, encoder_dirs: list[Path], ma
         stored = stored_images(dataset, model.config.camera, camera_frames)
         reproduced = (stored == camera_frames.images).all(axis=(1, 2, 3))
         if not reproduced.any():
-            raise ValueError(f"no {model.config.camera} frame simulated again equals the dataset's: {dataset.root} "
-                             "was collected by other code (scene, cameras or expert changed since)")
+            raise ValueError(
+                f"no {model.config.camera} frame simulated again equals the dataset's: {dataset.root} "
+                "was collected by other code (scene, cameras or expert changed since)"
+            )
         errors = pixel_errors(model, stored[reproduced], device)
         metrics = {
-            "camera": model.config.camera, "dataset": str(dataset.root), "task": read_recipe(Path(dataset.root)).task,
-            "episodes": [int(e) for e in held[directory]], "min_visible_pixels": MIN_VISIBLE_PIXELS,
+            "camera": model.config.camera,
+            "dataset": str(dataset.root),
+            "task": read_recipe(Path(dataset.root)).task,
+            "episodes": [int(e) for e in held[directory]],
+            "min_visible_pixels": MIN_VISIBLE_PIXELS,
             "reproduced_fraction": float(reproduced.mean()),
         } | object_metrics(errors, camera_frames.masks[reproduced])
         write_atomic(directory / OBJECT_PIXELS_FILE, (json.dumps(metrics, indent=2) + "\n").encode())
-        save_object_reconstructions(model.cpu(), stored[reproduced], camera_frames.masks[reproduced],
-                                    directory / OBJECT_FIGURE_FILE)
+        save_object_reconstructions(
+            model.cpu(), stored[reproduced], camera_frames.masks[reproduced], directory / OBJECT_FIGURE_FILE
+        )
         results.append(metrics)
     return results
 
@@ -171,11 +182,16 @@ def save_object_reconstructions(model: VQVAE, images: np.ndarray, masks: np.ndar
 
 def object_pixels_table(results: list[dict]) -> str:
     """One row per task and camera, as BENCHMARKS.md shows them."""
-    lines = ["| task | camera | images | object visible | object pixels (mean) | PSNR whole image | PSNR object | "
-             "PSNR background | reproduced |", "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| task | camera | images | object visible | object pixels (mean) | PSNR whole image | PSNR object | "
+        "PSNR background | reproduced |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in results:
-        lines.append(f"| {r['task']} | {r['camera']} | {r['images']} | {r['object_visible_fraction']:.0%} | "
-                     f"{r['object_pixels_mean']:.1f} | {r['whole_image']['psnr_db']:.1f} dB | "
-                     f"{r['object']['psnr_db']:.1f} dB | {r['background']['psnr_db']:.1f} dB | "
-                     f"{r['reproduced_fraction']:.0%} |")
+        lines.append(
+            f"| {r['task']} | {r['camera']} | {r['images']} | {r['object_visible_fraction']:.0%} | "
+            f"{r['object_pixels_mean']:.1f} | {r['whole_image']['psnr_db']:.1f} dB | "
+            f"{r['object']['psnr_db']:.1f} dB | {r['background']['psnr_db']:.1f} dB | "
+            f"{r['reproduced_fraction']:.0%} |"
+        )
     return "\n".join(lines) + "\n"

@@ -78,8 +78,14 @@ def evaluate(model: VQVAE, images: np.ndarray, device: torch.device, batch: int 
     }
 
 
-def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: int = 12,
-                         masks: np.ndarray | None = None, title: str = "held-out episodes") -> None:
+def save_reconstructions(
+    model: VQVAE,
+    images: np.ndarray,
+    path: Path,
+    count: int = 12,
+    masks: np.ndarray | None = None,
+    title: str = "held-out episodes",
+) -> None:
     """Originals over reconstructions; `masks` (N, H, W), if given, are outlined on both."""
     chosen = np.linspace(0, len(images) - 1, count).astype(int)
     picks = images[chosen]
@@ -102,8 +108,9 @@ def save_reconstructions(model: VQVAE, images: np.ndarray, path: Path, count: in
     fig.savefig(path, dpi=110)
 
 
-def _save_state(path: Path, model: VQVAE, optimizer, schedule, rng: np.random.Generator, step: int,
-                elapsed_s: float) -> None:
+def _save_state(
+    path: Path, model: VQVAE, optimizer, schedule, rng: np.random.Generator, step: int, elapsed_s: float
+) -> None:
     """Everything a stopped run needs to continue exactly where it was (written atomically)."""
     state = {
         "step": step,
@@ -143,8 +150,9 @@ def train_vqvae(
         return _train_vqvae(repo_id, root, camera, Path(out_dir), config, device)
 
 
-def _train_vqvae(repo_id: str, root: Path | None, camera: str, out_dir: Path, config: VQVAEConfig | None,
-                 device: str) -> dict:
+def _train_vqvae(
+    repo_id: str, root: Path | None, camera: str, out_dir: Path, config: VQVAEConfig | None, device: str
+) -> dict:
     device = resolve_device(device)
     dataset = open_dataset(repo_id, root)
     frames = load_camera_frames(dataset, camera)

@@ -19,8 +19,9 @@ from processes import TAG_VARIABLE, kill_tagged, new_tag
 OFFLINE = {"HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
 
 
-def run(args: list, *, timeout: float, cwd: Path | None = None, env: dict | None = None,
-        preexec_fn=None) -> subprocess.CompletedProcess:
+def run(
+    args: list, *, timeout: float, cwd: Path | None = None, env: dict | None = None, preexec_fn=None
+) -> subprocess.CompletedProcess:
     """`subprocess.run(args, capture_output=True, text=True)` that cannot hang: past `timeout`
     seconds the test fails with the output's tail; no process of the command survives it."""
     tag = new_tag()
@@ -31,8 +32,9 @@ def run(args: list, *, timeout: float, cwd: Path | None = None, env: dict | None
             stdout.seek(0), stderr.seek(0)
             return stdout.read(), stderr.read()
 
-        process = subprocess.Popen([str(a) for a in args], cwd=cwd, env=env, stdout=stdout, stderr=stderr,
-                                   text=True, preexec_fn=preexec_fn)
+        process = subprocess.Popen(
+            [str(a) for a in args], cwd=cwd, env=env, stdout=stdout, stderr=stderr, text=True, preexec_fn=preexec_fn
+        )
         interruption: BaseException | None = None
         try:
             process.wait(timeout=timeout)

@@ -130,8 +130,9 @@ class FakeHub:
 
             def preupload(self, repo_id, revision):
                 files = json.loads(self._body())["files"]
-                modes = [{"path": f["path"], "uploadMode": "regular", "shouldIgnore": False, "oid": None}
-                         for f in files]
+                modes = [
+                    {"path": f["path"], "uploadMode": "regular", "shouldIgnore": False, "oid": None} for f in files
+                ]
                 self._json(200, {"files": modes, "commitOid": _sha(hub.repos[repo_id]["main"])})
 
             def commit(self, repo_id, revision):
@@ -161,27 +162,42 @@ class FakeHub:
                 if repo_id not in hub.repos:
                     return self._not_found("RepoNotFound", "repository not found")
                 repo = hub.repos[repo_id]
-                self._json(200, {
-                    "branches": [{"name": "main", "ref": "refs/heads/main", "targetCommit": _sha(repo["main"])}],
-                    "tags": [{"name": t, "ref": f"refs/tags/{t}", "targetCommit": _sha(f)}
-                             for t, f in repo["tags"].items()],
-                    "converts": [],
-                })
+                self._json(
+                    200,
+                    {
+                        "branches": [{"name": "main", "ref": "refs/heads/main", "targetCommit": _sha(repo["main"])}],
+                        "tags": [
+                            {"name": t, "ref": f"refs/tags/{t}", "targetCommit": _sha(f)}
+                            for t, f in repo["tags"].items()
+                        ],
+                        "converts": [],
+                    },
+                )
 
             def info(self, repo_id, revision=None):
                 if repo_id not in hub.repos:
                     return self._not_found("RepoNotFound", "repository not found")
                 files = hub.files(repo_id, revision or "main")
-                self._json(200, {
-                    "id": repo_id, "_id": repo_id, "private": False, "sha": _sha(files), "tags": [],
-                    "siblings": [{"rfilename": name, "size": len(data)} for name, data in sorted(files.items())],
-                })
+                self._json(
+                    200,
+                    {
+                        "id": repo_id,
+                        "_id": repo_id,
+                        "private": False,
+                        "sha": _sha(files),
+                        "tags": [],
+                        "siblings": [{"rfilename": name, "size": len(data)} for name, data in sorted(files.items())],
+                    },
+                )
 
             def tree(self, repo_id, revision, prefix=""):
                 files = hub.files(repo_id, revision)
                 prefix = prefix.strip("/")
-                entries = [{"type": "file", "path": n, "size": len(d), "oid": hashlib.sha1(d).hexdigest()}
-                           for n, d in sorted(files.items()) if not prefix or n.startswith(prefix + "/")]
+                entries = [
+                    {"type": "file", "path": n, "size": len(d), "oid": hashlib.sha1(d).hexdigest()}
+                    for n, d in sorted(files.items())
+                    if not prefix or n.startswith(prefix + "/")
+                ]
                 self._json(200, entries)
 
             def resolve(self, repo_id, revision, filename, head=False):
@@ -192,8 +208,11 @@ class FakeHub:
                 if filename not in files:
                     return self._not_found(head=head)
                 data = files[filename]
-                headers = {"X-Repo-Commit": _sha(files), "ETag": f'"{hashlib.sha1(data).hexdigest()}"',
-                           "Content-Type": "application/octet-stream"}
+                headers = {
+                    "X-Repo-Commit": _sha(files),
+                    "ETag": f'"{hashlib.sha1(data).hexdigest()}"',
+                    "Content-Type": "application/octet-stream",
+                }
                 self._send(200, data, headers, head=head)
 
         routes = [

@@ -2,7 +2,7 @@
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test test-fast bench tables
+.PHONY: install run test test-fast lint bench tables
 
 $(STAMP): pyproject.toml scripts/install.sh
 	bash scripts/install.sh
@@ -17,6 +17,12 @@ run: $(STAMP)
 # pytest exits 5 when it collects no test: that is not a failure of the suite.
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q --durations=15; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 0; fi; exit $$rc
+
+# What CI checks before the tests: ruff's rules and its formatting (pyproject.toml [tool.ruff]).
+LINTED := lerobot_murm lerobot_policy_murm tests benchmarks scripts
+lint: $(STAMP)
+	$(VENV)/bin/ruff check $(LINTED)
+	$(VENV)/bin/ruff format --check $(LINTED)
 
 # The inner loop: everything but the end-to-end tests marked slow (CI runs `make test`).
 test-fast: $(STAMP)

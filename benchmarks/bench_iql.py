@@ -48,13 +48,13 @@ from torch.utils.flop_counter import FlopCounterMode
 from lerobot_murm.experiments.configuration_reproduce import TrainSpec
 from lerobot_murm.features import LATENTS_PREFIX, goal_image_key, image_key, is_goal
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.cuda_graph import CudaGraph, Updates, make_capturable
-from lerobot_murm.policy.evaluate import Evaluator, evaluation_seeds
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.precision import matmul_precision, resolve_precision
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
-from lerobot_murm.policy.seed_stack import LoneSeed, SeedStack
-from lerobot_murm.policy.train import build_policy, transition_batch
+from lerobot_murm.training.cuda_graph import CudaGraph, Updates, make_capturable
+from lerobot_murm.training.evaluate import Evaluator, evaluation_seeds
+from lerobot_murm.training.seed_stack import LoneSeed, SeedStack
+from lerobot_murm.training.train import build_policy, transition_batch
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.code_packing import unpack_codes
 from lerobot_murm.vqvae.latent_cache import LatentCache

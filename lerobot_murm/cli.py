@@ -169,7 +169,7 @@ def _check_encoders(args: argparse.Namespace) -> None:
 
 
 def _train(args: argparse.Namespace) -> None:
-    from lerobot_murm.policy.train import load_train_config, train
+    from lerobot_murm.training.train import load_train_config, train
 
     for summary in train(load_train_config(args.config, args.overrides)):
         for row in summary["final"]:

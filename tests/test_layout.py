@@ -5,7 +5,8 @@ included. Floors, lowest first; a module may import its own floor and the floors
 
 0. base: `features.py` (the dataset's keys), `checkpointing.py`, `checks.py`, `device.py`,
    `locking.py`, `library_logs.py`, `training_loop.py`: shared helpers that import nothing of
-   the package, so that every stage can use them
+   the package, so that every stage can use them. `training_loop.py` and `checkpointing.py`
+   stay here rather than in `training/`: the VQ-VAE trainer and collection use them too
 1. `env/`: the simulator
 2. `expert/`: the scripted expert (acts in the env)
 3. `collection/`: demonstrations as a LeRobotDataset (runs the expert in the env)
@@ -13,8 +14,10 @@ included. Floors, lowest first; a module may import its own floor and the floors
    object-pixel check simulates episodes again through collection's public functions)
 5. `publishing/`: Hub push/pull and the cards of demonstrations and latent datasets; above the
    stages it describes, below every stage that may want to publish what it made
-6. `policy/`: what `lerobot-eval` loads (and, until it moves, the fast trainer)
-7. `training/`: the fast trainer
+6. `policy/`: what `lerobot-eval` loads (configuration, modeling, processor, IQL, the
+   latent sampler)
+7. `training/`: the fast trainer of `murm train` (driver, run folder, evaluator, seed stack,
+   CUDA graph, learning curves)
 8. `experiments/`: `murm reproduce` and `murm report`
 9. `demo.py`: the body of `murm demo` (env, expert, collection); only the CLI uses it
 10. `cli.py` and the package's `__init__.py` (importing `lerobot_murm` registers the env and

@@ -20,7 +20,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
-from lerobot_murm.policy.train import build_policy
+from lerobot_murm.training.train import build_policy
 
 REPO = Path(__file__).parents[1]
 HELPERS = Path(__file__).parent / "helpers"

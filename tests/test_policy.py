@@ -14,7 +14,7 @@ from lerobot_murm.features import goal_image_key, image_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import camera_keep_mask
 from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
-from lerobot_murm.policy.train import build_policy
+from lerobot_murm.training.train import build_policy
 
 REPO = "local/place_in_box"
 

@@ -184,7 +184,7 @@ def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoi
 def test_the_evaluator_leaves_the_callers_stop_signals_alone():
     """Gymnasium builds one simulator in the calling process to read the spaces; only the
     workers may ignore Ctrl-C and SIGTERM, or a later stop (encoder training) is lost."""
-    from lerobot_murm.policy.evaluate import Evaluator
+    from lerobot_murm.training.evaluate import Evaluator
 
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     with Evaluator("place_in_box", ["global"], image_size=16, num_envs=1):
@@ -193,7 +193,7 @@ def test_the_evaluator_leaves_the_callers_stop_signals_alone():
 
 
 def test_validation_and_test_seeds_must_be_disjoint(tiny_pipeline, tmp_path):
-    from lerobot_murm.policy.train import load_train_config
+    from lerobot_murm.training.train import load_train_config
 
     config = train_config(tiny_pipeline, tmp_path, "separated_q")
     assert load_train_config(config).test_seed == 300_000

@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
-from lerobot_murm.policy.train import load_train_config
+from lerobot_murm.training.train import load_train_config
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import run
@@ -354,7 +354,7 @@ def test_the_smoke_single_view_cell_learns_a_policy_that_beats_random_actions(tm
     cell only: collection, VQ-VAE, IQL and evaluation in the simulator, from nothing."""
     import yaml
 
-    from lerobot_murm.policy.evaluate import evaluation_seeds
+    from lerobot_murm.training.evaluate import evaluation_seeds
 
     config = yaml.safe_load((REPO / "configs/reproduce/smoke.yaml").read_text())
     config["cells"] = [cell | {"eval_mask_p": [0.0]} for cell in config["cells"] if cell["method"] == "single"]

@@ -1,4 +1,4 @@
-"""Seeds side by side (policy/seed_stack.py): a stacked seed trains as it would alone, seeds
+"""Seeds side by side (training/seed_stack.py): a stacked seed trains as it would alone, seeds
 do not leak into each other, checkpoints move between a stack and a lone run, evaluation
 acts for all seeds in one forward, and the CUDA-graph driver's host-side logic (on CPU)."""
 
@@ -12,11 +12,11 @@ from lerobot.configs import FeatureType, PolicyFeature
 
 from lerobot_murm.features import goal_image_key, image_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.cuda_graph import Updates
-from lerobot_murm.policy.evaluate import act_together
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.replay import LatentReplay
-from lerobot_murm.policy.seed_stack import LoneSeed, SeedStack
+from lerobot_murm.training.cuda_graph import Updates
+from lerobot_murm.training.evaluate import act_together
+from lerobot_murm.training.seed_stack import LoneSeed, SeedStack
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.latent_cache import LatentCache
 

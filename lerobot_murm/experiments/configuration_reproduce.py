@@ -146,7 +146,7 @@ class ReproduceConfig:
     # build the grid's datasets and encoders (kept beside the results), then stop before any
     # training run: the long shared stages of a study, ahead of the protocol its runs follow
     prepare_only: bool = False
-    # train each cell's seeds side by side as one stacked model (policy/seed_stack.py), in one
+    # train each cell's seeds side by side as one stacked model (training/seed_stack.py), in one
     # job; false: every seed its own job. Timed grids never stack.
     stack_seeds: bool = True
     # one budget for every cell, chosen on validation curves (BudgetSpec); none: each cell
@@ -221,7 +221,7 @@ class ReproduceConfig:
         bad method, camera, policy field or number fails now, not after hours of collection."""
         from lerobot_murm.collection import CollectConfig
         from lerobot_murm.policy.configuration_murm import MurmConfig
-        from lerobot_murm.policy.train import TrainConfig
+        from lerobot_murm.training.train import TrainConfig
         from lerobot_murm.vqvae import VQVAEConfig
 
         unknown = [c for c in self.vqvae.camera_steps if c not in CAMERA_NAMES]

@@ -43,9 +43,9 @@ from lerobot_murm.experiments.results import final_evaluations, grid_results, ma
 from lerobot_murm.expert import default_noise_std
 from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.learning_curve import read_run_csv, validation_curve
 from lerobot_murm.policy.precision import cpu_description, resolve_precision
-from lerobot_murm.policy.train import TrainConfig, test_kept, train_seeds
+from lerobot_murm.training.learning_curve import read_run_csv, validation_curve
+from lerobot_murm.training.train import TrainConfig, test_kept, train_seeds
 from lerobot_murm.vqvae import VQVAEConfig
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE
 from lerobot_murm.vqvae.encoder_files import (

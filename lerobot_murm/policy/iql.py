@@ -19,7 +19,7 @@ them into a LeRobot policy and the fast trainer samples batches for them.
 `MurmPolicy.iql_loss` (modeling_murm.py) is these pieces in a row, as CORL's IQL writes them.
 
 Every network and loss here also takes leading dimensions before the batch: the seeds of a
-seed stack (`seed_stack.py`), whose weights carry the same leading dimension. Losses
+seed stack (`training/seed_stack.py`), whose weights carry the same leading dimension. Losses
 reduce over the batch (the last dimension) only, so a stack gets one loss per seed.
 
 The policy is a Gaussian whose mean is squashed by tanh and whose log-std is a learned

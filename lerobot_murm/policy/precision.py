@@ -79,7 +79,7 @@ def resolve_precision(precision: str, device: torch.device) -> torch.dtype:
 def matmul_precision(dtype: torch.dtype, device: torch.device) -> torch.autocast:
     """Autocast to bf16 when `dtype` is bf16; otherwise a disabled autocast, which also turns
     off any autocast a caller opened, so `fp32` means fp32. No cast cache on CUDA: a CUDA graph
-    (cuda_graph.py) cannot capture one."""
+    (training/cuda_graph.py) cannot capture one."""
     return torch.autocast(
         device.type, dtype=torch.bfloat16, enabled=dtype == torch.bfloat16, cache_enabled=device.type != "cuda"
     )

@@ -9,7 +9,7 @@ target update as under `lerobot-train`; checkpoints are LeRobot's format
 Output folder: `train_config.yaml`, `log.csv` (losses), `eval.csv` (success rate per
 evaluation and masking level), `learning_curve.png`, `checkpoints/last/` (policy +
 `training_state.pt`, written at every evaluation so an interrupted run resumes there),
-and `final_eval.json`.
+and `final_eval.json` (`run_folder.py` writes and reads these files).
 
 With `seeds: [a, b, ...]` the seeds train side by side as one stacked model
 (`seed_stack.py`) and evaluate together, each writing `output_dir/seed<k>/` exactly as a
@@ -22,7 +22,6 @@ On CUDA every update is replayed from a CUDA graph (`cuda_graph.py`).
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
@@ -34,36 +33,29 @@ from lerobot.configs import FeatureType
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.utils.feature_utils import dataset_to_policy_features
 
-from lerobot_murm.checkpointing import (
-    COMPLETE_MARK,
-    CheckpointError,
-    append_rows,
-    last_logged_step,
-    load_state,
-    recover,
-    save_state,
-    set_aside_rows_after,
-    staging_folder,
-    swap_in,
-    write_atomic,
-)
+from lerobot_murm.checkpointing import CheckpointError, append_rows, set_aside_rows_after, write_atomic
 from lerobot_murm.checks import check_writable
 from lerobot_murm.device import resolve_device
 from lerobot_murm.env import TASK_NAMES
 from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.cuda_graph import CudaGraph, Updates, make_capturable
-from lerobot_murm.policy.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
-from lerobot_murm.policy.learning_curve import plot_learning_curve, read_run_csv
 from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
-from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
-from lerobot_murm.policy.seed_stack import stacking_pays, train_together
+from lerobot_murm.training.cuda_graph import CudaGraph, Updates, make_capturable
+from lerobot_murm.training.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
+from lerobot_murm.training.learning_curve import plot_learning_curve, read_run_csv
+from lerobot_murm.training.run_folder import (
+    EVAL_COLUMNS,
+    LOG_COLUMNS,
+    finished_summary,
+    keep_policy,
+    kept_policy,
+    resume_state,
+    save_checkpoint,
+)
+from lerobot_murm.training.seed_stack import stacking_pays, train_together
 from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop
 from lerobot_murm.vqvae.frames import dataset_location, open_dataset
-
-LOG_COLUMNS = ["step", "value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight", "steps_per_s"]
-EVAL_COLUMNS = ["step", "mask_p", "success_rate", "episodes", "seconds", "split", "mask_mode"]
 
 
 @dataclass
@@ -160,43 +152,6 @@ def transition_batch(replay: LatentReplay, batch_size: int, generator: torch.Gen
     return replay.sample(batch_size, generator).transition()
 
 
-def save_checkpoint(
-    folder: Path, policy: MurmPolicy, optimizer_state: dict, step: int, generator: torch.Generator, elapsed_s: float
-) -> None:
-    """Write the next `folder` beside it, then swap it in (`checkpointing.swap_in`): a crash at
-    any point leaves one complete checkpoint, which the next run finds (`checkpointing.recover`)."""
-    tmp = staging_folder(folder)
-    pretrained = tmp / "pretrained_model"
-    policy.save_pretrained(pretrained)
-    preprocessor, postprocessor = make_murm_pre_post_processors(policy.config)
-    preprocessor.save_pretrained(pretrained)
-    postprocessor.save_pretrained(pretrained)
-    state = {
-        "step": step,
-        "optimizer": optimizer_state,
-        "generator": generator.get_state(),
-        "torch_rng": torch.get_rng_state(),
-        "policy": policy.state_dict(),
-        "elapsed_s": elapsed_s,  # wall time of all sittings so far, so a resumed run reports its whole time
-    }
-    save_state(state, tmp / COMPLETE_MARK)
-    swap_in(folder)
-
-
-def _resume_state(out: Path, last: Path, device: torch.device) -> dict | None:
-    """The training state to resume from; None for a new run. A run that has logged steps
-    but has no readable checkpoint is an error, never a silent restart over its logs."""
-    if recover(last):
-        return load_state(last / COMPLETE_MARK, device)
-    logged = last_logged_step(out / "log.csv")
-    if logged is not None or last.exists():
-        raise CheckpointError(
-            f"{out} holds an earlier run (logged to step {logged}) but no checkpoint to resume from "
-            f"({last / COMPLETE_MARK} is missing); move {out} away or set another output_dir"
-        )
-    return None
-
-
 def seed_configs(config: TrainConfig) -> list[TrainConfig]:
     """One config per seed: `seeds` each in output_dir/seed<k>, else `seed` in output_dir."""
     if not config.seeds:
@@ -205,24 +160,6 @@ def seed_configs(config: TrainConfig) -> list[TrainConfig]:
         replace(config, seed=seed, seeds=[], output_dir=str(Path(config.output_dir) / f"seed{seed}"))
         for seed in config.seeds
     ]
-
-
-def finished_summary(config: TrainConfig) -> dict | None:
-    """The summary of a run finished for `config.steps`; None if it is to train (a run finished
-    for fewer steps trains on, its evaluation at that step kept beside)."""
-    finished = Path(config.output_dir) / "final_eval.json"
-    if not finished.exists():
-        return None
-    summary = json.loads(finished.read_text())
-    if summary["steps"] == config.steps:
-        return summary
-    if summary["steps"] > config.steps:
-        raise CheckpointError(
-            f"{config.output_dir} is trained to {summary['steps']} steps, more than the "
-            f"{config.steps} asked; move it away or set another output_dir"
-        )
-    finished.rename(finished.with_name(f"final_eval_{summary['steps']}.json"))
-    return None
 
 
 @dataclass
@@ -247,17 +184,7 @@ class SeedRun:
 
     def keep(self, step: int) -> None:
         """A copy of the last checkpoint's policy as the policy at `step` (`keep_every`)."""
-        kept = kept_policy(self.out, step)
-        if kept.exists():  # kept before a stop, at this very step
-            return
-        tmp = staging_folder(kept.parent)
-        shutil.copytree(self.last / "pretrained_model", tmp / kept.name)
-        tmp.rename(kept.parent)  # whole or absent
-
-
-def kept_policy(run_dir: Path, step: int) -> Path:
-    """Where a run keeps its policy at `step` (`keep_every`)."""
-    return Path(run_dir) / "checkpoints" / f"{step:06d}" / "pretrained_model"
+        keep_policy(self.out, step)
 
 
 def train(config: TrainConfig) -> list[dict]:
@@ -290,7 +217,7 @@ def _train_seeds(configs: list[TrainConfig]) -> list[dict]:
     for c in todo:
         Path(c.output_dir).mkdir(parents=True, exist_ok=True)
     # every state first: a damaged run fails before the expensive steps
-    states = [_resume_state(Path(c.output_dir), Path(c.output_dir) / "checkpoints" / "last", device) for c in todo]
+    states = [resume_state(Path(c.output_dir), Path(c.output_dir) / "checkpoints" / "last", device) for c in todo]
     sitting = time.perf_counter()  # a run's wall time counts its setup (latents, policy) and evaluations
     repo_id, root = dataset_location(first.dataset)
     dataset = open_dataset(repo_id, root)

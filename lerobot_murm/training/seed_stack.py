@@ -3,7 +3,7 @@
 Our networks are small, so one seed's update is mostly per-operation cost (Python dispatch,
 ~100 small kernels, their launches on a GPU) rather than arithmetic. A stack gives every
 weight and Adam moment a leading seed dimension and runs `MurmPolicy.iql_loss` once on
-them (`torch.func.functional_call`; every network in `iql.py` takes leading seed dimensions):
+them (`torch.func.functional_call`; every network in `policy/iql.py` takes leading seed dimensions):
 the twin-Q and per-camera heads of all seeds become one ensemble of batched matmuls, and
 Adam and Polyak one update per tensor for all seeds. nn.Linear weights are stacked as
 (seeds, in, out), the layout a batched matmul reads without a transposed copy (a transposed

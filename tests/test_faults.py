@@ -363,10 +363,10 @@ def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_pipeline, 
 
 KEEP_GLOBAL_ENCODER = """
 import sys
-from lerobot_murm.experiments import reproduce as driver
+from lerobot_murm.experiments import artifacts
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 config = load_reproduce_config(sys.argv[1], sys.argv[2:])
-driver.keep_encoders(config, [(driver.encoder_root(config, "place_in_box"), "global")])
+artifacts.keep_encoders(config, [(artifacts.encoder_root(config, "place_in_box"), "global")])
 """
 
 
@@ -374,31 +374,31 @@ def test_a_full_disk_while_keeping_an_encoder_leaves_no_kept_encoder_that_looks_
     """The disk fills while a trained encoder is copied beside the results. The half copy
     does not pass for a finished encoder (its metrics are copied last), so the next sitting
     copies it again, whole, instead of encoding with torn weights."""
-    from lerobot_murm.experiments import reproduce as driver
+    from lerobot_murm.experiments import artifacts
 
     overrides = [f"--results_dir={tmp_path / 'results'}", f"--work_dir={tmp_path / 'work'}"]
     table6 = Path(__file__).parents[1] / "configs/reproduce/table6.yaml"
     config = load_reproduce_config(table6, overrides)
-    root = driver.encoder_root(config, "place_in_box")
-    trained = driver.encoder_dir(config, root) / "global"
+    root = artifacts.encoder_root(config, "place_in_box")
+    trained = artifacts.encoder_dir(config, root) / "global"
     trained.mkdir(parents=True)
     (trained / "config.json").write_text("{}")
     (trained / "model.safetensors").write_bytes(random.Random(0).randbytes(1 << 20))
     (trained / "metrics.json").write_text(
-        json.dumps({"interrupted": False, "steps": driver.encoder_steps(config, "global")})
+        json.dumps({"interrupted": False, "steps": artifacts.encoder_steps(config, "global")})
     )
     command = [sys.executable, "-c", KEEP_GLOBAL_ENCODER, str(table6), *overrides]
 
     full = run(command, timeout=120, preexec_fn=disk_full_past(1 << 16))
     assert full.returncode == 1 and "File too large" in full.stderr, full.stderr[-2000:]
-    kept = driver.kept_encoder_dir(config, root) / "global"
+    kept = artifacts.kept_encoder_dir(config, root) / "global"
     assert kept.exists()  # the copy was under way
-    assert not driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
+    assert not artifacts.encoder_is_finished(kept, artifacts.encoder_steps(config, "global"))
 
     again = run(command, timeout=120)
     assert again.returncode == 0, again.stderr[-2000:]
-    assert driver.encoder_is_finished(kept, driver.encoder_steps(config, "global"))
-    assert driver.encoder_fingerprint(kept) == driver.encoder_fingerprint(trained)
+    assert artifacts.encoder_is_finished(kept, artifacts.encoder_steps(config, "global"))
+    assert artifacts.encoder_fingerprint(kept) == artifacts.encoder_fingerprint(trained)
 
 
 KILLED_MID_SAVE = """

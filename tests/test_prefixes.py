@@ -72,12 +72,12 @@ def test_a_larger_collection_carries_a_finished_smaller_one_on(tmp_path):
 
 
 def test_a_grid_simulates_only_the_largest_collection_of_a_recipe(tmp_path, monkeypatch):
-    import lerobot_murm.experiments.reproduce as reproduce
+    import lerobot_murm.experiments.artifacts as artifacts
 
     simulated = []
-    real_collect = reproduce.collect
+    real_collect = artifacts.collect
     monkeypatch.setattr(
-        reproduce, "collect", lambda c, donors: simulated.append((c.root.name, c.resume)) or real_collect(c, donors)
+        artifacts, "collect", lambda c, donors: simulated.append((c.root.name, c.resume)) or real_collect(c, donors)
     )
     datasets = tmp_path / "datasets"
     collect(config(datasets / "two", 2))  # finished before: the four-episode collection carries it on
@@ -115,12 +115,12 @@ def test_a_partly_noisy_collection_is_copied_from_the_clean_and_the_noisy_ones(t
 
 
 def test_a_grid_collects_the_clean_and_noisy_donors_before_the_partly_noisy_collection(tmp_path, monkeypatch):
-    import lerobot_murm.experiments.reproduce as reproduce
+    import lerobot_murm.experiments.artifacts as artifacts
 
     built = []
-    real_collect = reproduce.collect
+    real_collect = artifacts.collect
     monkeypatch.setattr(
-        reproduce, "collect", lambda c, donors: built.append((c.root.name, sorted(donors))) or real_collect(c, donors)
+        artifacts, "collect", lambda c, donors: built.append((c.root.name, sorted(donors))) or real_collect(c, donors)
     )
     datasets = tmp_path / "datasets"
     wanted = [

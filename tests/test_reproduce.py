@@ -172,7 +172,7 @@ def test_the_smoke_grid_runs_end_to_end_and_a_rerun_reuses_everything(tmp_path):
 
 
 def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_levels(tmp_path):
-    from lerobot_murm.experiments.reproduce import finished_elsewhere, run_recipe
+    from lerobot_murm.experiments.reuse import finished_elsewhere, run_recipe
 
     table4 = load_reproduce_config(REPO / "configs/reproduce/table4.yaml", [f"--results_dir={tmp_path}"])
     table3 = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", [f"--results_dir={tmp_path}"])
@@ -220,7 +220,7 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
 
 
 def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuses_none_of_them(tmp_path):
-    from lerobot_murm.experiments.reproduce import finished_elsewhere, kept_as_finished, run_recipe
+    from lerobot_murm.experiments.reuse import finished_elsewhere, kept_as_finished, run_recipe
 
     table4 = load_reproduce_config(REPO / "configs/reproduce/table4.yaml", [f"--results_dir={tmp_path}"])
     table3 = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", [f"--results_dir={tmp_path}"])
@@ -258,30 +258,30 @@ def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuse
 def test_an_encoder_stage_stopped_midway_keeps_the_encoders_it_finished(tmp_path, monkeypatch):
     """The end of a sitting (or a failed job) in the encoder stage: each encoder finished
     before it is beside the results already, for the next machine to copy back."""
-    from lerobot_murm.experiments import reproduce as driver
+    from lerobot_murm.experiments import artifacts, reproduce as driver
     from lerobot_murm.experiments.executors import SerialExecutor
 
     config = load_reproduce_config(
         REPO / "configs/reproduce/table6.yaml",
         [f"--results_dir={tmp_path / 'results'}", f"--work_dir={tmp_path / 'work'}"],
     )
-    root = driver.encoder_root(config, "place_in_box")
+    root = artifacts.encoder_root(config, "place_in_box")
 
     def train_one(config, root, camera):  # stands in for a VQ-VAE training: a finished encoder's files
         if camera == "top":
             raise RuntimeError("the sitting ended")
-        out = driver.encoder_dir(config, root) / camera
+        out = artifacts.encoder_dir(config, root) / camera
         out.mkdir(parents=True)
         (out / "config.json").write_text("{}")
         (out / "model.safetensors").write_bytes(camera.encode())
         (out / "metrics.json").write_text(
-            json.dumps({"interrupted": False, "steps": driver.encoder_steps(config, camera)})
+            json.dumps({"interrupted": False, "steps": artifacts.encoder_steps(config, camera)})
         )
 
     monkeypatch.setattr(driver, "ensure_encoder", train_one)
     with pytest.raises(RuntimeError, match="the sitting ended"):
         driver.build_encoders(SerialExecutor(), config, [(root, "global"), (root, "top")])
-    kept = driver.kept_encoder_dir(config, root)
+    kept = artifacts.kept_encoder_dir(config, root)
     assert sorted(p.name for p in kept.iterdir()) == ["global"]
     assert (kept / "global" / "model.safetensors").read_bytes() == b"global"
 
@@ -289,7 +289,7 @@ def test_an_encoder_stage_stopped_midway_keeps_the_encoders_it_finished(tmp_path
 def test_a_sitting_that_runs_part_of_a_grid_adds_to_the_grid_it_records(tmp_path):
     import draccus
 
-    from lerobot_murm.experiments.reproduce import grid_so_far
+    from lerobot_murm.experiments.reuse import grid_so_far
 
     table3 = REPO / "configs/reproduce/table3.yaml"
     stored = tmp_path / "config.yaml"
@@ -322,7 +322,7 @@ def test_every_training_config_parses(path, tiny_pipeline):
 
 
 def test_an_encoder_is_reused_only_when_trained_to_the_end_for_the_asked_steps(tmp_path):
-    from lerobot_murm.experiments.reproduce import encoder_is_finished
+    from lerobot_murm.experiments.artifacts import encoder_is_finished
 
     assert not encoder_is_finished(tmp_path, 2500)  # nothing there
     (tmp_path / "metrics.json").write_text(json.dumps({"steps": 2500, "interrupted": False}))

@@ -1,0 +1,151 @@
+"""The rules for reusing earlier work: a run's recipe (everything that decides what it trains),
+whether a stored result was trained by it (`same_recipe`, `kept_as_finished`), a finished run
+of another grid taken instead of training it again (`finished_elsewhere`: Table 3's global
+camera is Table 4's single-view baseline, when trained on the very same encoders), results
+their cell no longer produces set aside, and the grid a results folder records
+(`grid_so_far`: a sitting that runs part of a grid adds to it).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, replace
+from pathlib import Path
+
+from lerobot_murm.device import resolve_device
+from lerobot_murm.experiments.artifacts import (
+    dataset_root,
+    encoder_root,
+)
+from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
+from lerobot_murm.experiments.results import read_result
+from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.policy.precision import resolve_precision
+
+
+def policy_overrides(method: str, cameras: list[str], policy: dict) -> dict:
+    """The policy fields that differ from the method's defaults: a cell that spells a default
+    out (Table 1's 128 units) trains the same run as one that leaves it out."""
+    common = {"method": method, "cameras": list(cameras)}
+    default, given = MurmConfig(**common), MurmConfig(**common, **policy)
+    return {key: value for key, value in policy.items() if getattr(given, key) != getattr(default, key)}
+
+
+def same_recipe(stored: dict | None, recipe: dict) -> bool:
+    """Whether a stored run was trained by `recipe` (policies compared by what differs from
+    their method's defaults, so that recipes stored before that rule still match)."""
+    if stored is None:
+        return False
+    return stored | {"policy": policy_overrides(stored["method"], stored["cameras"], stored["policy"])} == recipe
+
+
+def kept_as_finished(stored: dict | None, recipe: dict, cell: CellSpec) -> bool:
+    """Whether a grid's stored run stands as its cell's finished run: trained by the cell's
+    recipe, or by it on a machine where `precision: auto` resolved otherwise (bf16 on CPUs
+    with native bf16, fp32 elsewhere; the `precision` grid found no difference beyond the
+    seeds' spread). Without this a grid moved to another machine would set aside and train
+    again every run it has. Each run records its precision; another grid's runs are taken
+    only for the very same recipe (`finished_elsewhere`)."""
+    if stored is None or same_recipe(stored, recipe):  # None: an earlier setting's run, kept as it is
+        return True
+    return "precision" not in cell.policy and same_recipe(stored | {"precision": recipe["precision"]}, recipe)
+
+
+def set_aside(path: Path) -> Path:
+    """Move a result its cell no longer produces to `runs/superseded/` (kept, never overwritten)."""
+    folder = path.parent / "superseded"
+    folder.mkdir(exist_ok=True)
+    target, n = folder / path.name, 0
+    while target.exists():
+        n += 1
+        target = folder / f"{path.stem}.{n}{path.suffix}"
+    return path.rename(target)
+
+
+def run_recipe(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> dict:
+    """Everything that decides what a run trains (not its name, grid or evaluation masks)."""
+    scales = {
+        k: v for k, v in (("paper_epsilon", cell.paper_epsilon), ("epsilon_quantile", cell.epsilon_quantile)) if v
+    }
+    dataset, encoders = dataset_root(config, task, cell).name, encoder_root(config, task).name
+    return json.loads(
+        json.dumps(
+            {  # as it reads back from a result file
+                "task": task,
+                "dataset": dataset,
+                **({"encoder_dataset": encoders} if encoders != dataset else {}),
+                "method": cell.method,
+                "cameras": list(cell.cameras),
+                "epsilon": cell.epsilon,
+                **scales,
+                "policy": policy_overrides(cell.method, cell.cameras, cell.policy),
+                "vqvae": asdict(config.vqvae),
+                "train": asdict(config.train) | {"steps": config.cell_steps(cell)},
+                "seed": seed,
+                **({"budget": asdict(config.budget)} if config.budget else {}),
+                # what `precision: auto` resolves to here: a bf16 run is not an fp32 run's twin
+                "precision": str(
+                    resolve_precision(cell.policy.get("precision", "auto"), resolve_device(config.device))
+                ),
+            }
+        )
+    )
+
+
+def budget_recipe(recipe: dict, budget: int) -> dict:
+    """A budget grid's run as tested: its recipe at `budget` updates."""
+    return recipe | {"train": recipe["train"] | {"steps": budget}}
+
+
+def finished_elsewhere(
+    config: ReproduceConfig, recipe: dict, mask_ps: list[float], encoders: dict[str, str] | None
+) -> dict | None:
+    """A result of another grid with the same recipe, trained on the very encoders given (by
+    fingerprint; runs from before fingerprints were recorded are never taken) and evaluated
+    at every masking level asked, cut down to those levels; None if there is none."""
+    if encoders is None:
+        return None
+    for path in sorted(Path(config.results_dir).glob("*/runs/*.json")):
+        if path.parent.parent.name == config.name:
+            continue
+        result = read_result(path)
+        if result is None or "validation_seeds" not in result:  # an earlier setting's run, chosen on its test seeds
+            continue
+        if not same_recipe(result.get("recipe"), recipe) or not set(mask_ps) <= {r["mask_p"] for r in result["final"]}:
+            continue
+        if result.get("encoders") != encoders:
+            continue
+        return result | {
+            "final": [r for r in result["final"] if r["mask_p"] in mask_ps],
+            "curve": [point for point in result["curve"] if point[1] in mask_ps],
+            "reused_from": f"{path.parent.parent.name}/{path.stem}",
+        }
+    return None
+
+
+def stored_at(path: Path, recipe: dict, steps: int) -> bool:
+    """Whether a budget grid's result at `path` holds its run at `steps` updates, trained by
+    `recipe`. A result of another recipe (its cell changed, or an earlier study's run of the
+    same name) is set aside; its run trains again, from its checkpoint where it can."""
+    stored = read_result(path) if path.exists() else None
+    if stored is not None and not same_recipe(stored.get("recipe"), recipe):
+        print(f"{path.name}: another recipe than its cell's (set aside in {set_aside(path).parent})", flush=True)
+        return False
+    return stored is not None and stored["steps"] == steps
+
+
+def grid_so_far(config: ReproduceConfig, stored: Path) -> ReproduceConfig:
+    """The grid a results folder records (its config.yaml): a sitting that runs part of the
+    grid (`--tasks=[pick_up]`, `--seeds=[1]`, or a copy of the config with fewer tasks) adds
+    its tasks and seeds to the stored grid instead of replacing it, so the tables keep every
+    column run before. Any other change is a new grid definition and replaces it."""
+    if not stored.exists():
+        return config
+    try:
+        before = load_reproduce_config(stored)
+    except Exception:  # an unreadable record (torn): this sitting's grid stands
+        return config
+    if replace(before, tasks=config.tasks, seeds=config.seeds, stack_seeds=config.stack_seeds) != config:
+        return config
+    tasks = [*before.tasks, *(task for task in config.tasks if task not in before.tasks)]
+    return replace(config, tasks=tasks, seeds=sorted({*before.seeds, *config.seeds}))

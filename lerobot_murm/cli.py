@@ -31,7 +31,6 @@ def _collect(args: argparse.Namespace) -> None:
         cameras=tuple(args.cameras.split(",")),
         image_size=args.image_size,
         seed=args.seed,
-        noise_k=args.noise_k,
         noisy_fraction=args.noisy_fraction,
         noise_std=args.noise_std,
         resume=args.resume,
@@ -247,13 +246,12 @@ def build_parser() -> argparse.ArgumentParser:
     col.add_argument("--cameras", default="global,adjacent,side,top,active", help="comma-separated (default: all five)")
     col.add_argument("--image-size", type=int, default=48)
     col.add_argument("--seed", type=int, default=0, help="base seed: episode i depends on it and i alone")
-    col.add_argument("--noise-k", type=float, default=1.0, help="expert noise k in a* + k N(0, std) (default: 1)")
     col.add_argument(
         "--noise-std",
         type=float,
         default=None,
-        help="noise std (default: the task's calibrated std, about 75%% expert success as in the paper; "
-        "0.1 is the paper's std, --noisy-fraction 0 the clean expert)",
+        help="expert noise std, a = clip(a* + N(0, std), -1, 1) (default: the task's calibrated std, about 75%% "
+        "expert success as in the paper; the paper's k N(0, 0.1) is std 0.1 k; --noisy-fraction 0 the clean expert)",
     )
     col.add_argument("--noisy-fraction", type=float, default=1.0, help="share of noisy episodes (default: 1)")
     col.add_argument("--resume", action="store_true", help="carry on an interrupted or shorter collection")

@@ -55,6 +55,22 @@ def test_collected_dataset_loads_with_stock_lerobot_and_has_every_stream(tmp_pat
     assert torch.equal(goals[0], goals[1]) and not torch.equal(goals[0], goals[2])
 
 
+def test_a_summary_with_the_noise_in_two_knobs_reads_as_the_one_knob_recipe():
+    """Collections written before the noise had one knob store `noise_k` beside `noise_std`;
+    they read as the recipe of std k * noise_std (k = 1 in every collection made), so the
+    datasets on disk are found again under their names."""
+    from dataclasses import asdict
+
+    from lerobot_murm.collection.dataset import recipe_from_summary
+
+    recipe = CollectConfig(task="place_in_box", root=Path("unused")).recipe
+    stored = asdict(recipe) | {"cameras": list(recipe.cameras)}
+    assert recipe_from_summary(stored) == recipe
+    assert recipe_from_summary(stored | {"noise_k": 1.0}) == recipe
+    assert recipe_from_summary(stored | {"noise_k": 0.5}) == replace(recipe, noise_std=0.5 * recipe.noise_std)
+    assert recipe_from_summary({k: v for k, v in stored.items() if k != "scene"}).scene == 1
+
+
 def test_the_default_recipe_is_the_papers_noise_model_calibrated_to_fail_sometimes():
     """Paper 4.1: the noisy expert reaches the goal in roughly 75 % of episodes. The default
     recipe keeps a* + k N(0, std) with k = 1 and a per-task std; on a small seeded batch some
@@ -62,7 +78,7 @@ def test_the_default_recipe_is_the_papers_noise_model_calibrated_to_fail_sometim
     from lerobot_murm.expert import CALIBRATED_NOISE_STD, PAPER_NOISE_STD
 
     config = CollectConfig(task="place_in_box", root=Path("unused"))
-    assert config.noise_k == 1.0 and config.noise_std == CALIBRATED_NOISE_STD["place_in_box"] > PAPER_NOISE_STD
+    assert config.noise_std == CALIBRATED_NOISE_STD["place_in_box"] > PAPER_NOISE_STD
     assert CollectConfig(task="pick_up", root=Path("unused"), noise_std=0.1).noise_std == PAPER_NOISE_STD
     tiny = {"cameras": ("global",), "image_size": 8, "base_seed": 3}
     noisy = [run_episode(replace(config.recipe, **tiny), i).succeeded for i in range(12)]

@@ -60,9 +60,10 @@ class CollectConfig:
     cameras: tuple[str, ...] = CAMERA_NAMES
     image_size: int = 48
     seed: int = 0
-    noise_k: float = 1.0
     noisy_fraction: float = 1.0
-    noise_std: float | None = None  # None: the task's calibrated std (about 75 % success)
+    # the expert noise's std, its one knob (paper 4.1's k N(0, 0.1) is std 0.1 k); None: the
+    # task's calibrated std (about 75 % success)
+    noise_std: float | None = None
     resume: bool = False
     overwrite: bool = False
     first_episode: int = 0  # a shard of a larger collection holds episodes first_episode, first_episode + 1, ...
@@ -81,8 +82,6 @@ class CollectConfig:
             raise ValueError(f"flush_every must be at least 1, got {self.flush_every}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
-        if not (math.isfinite(self.noise_k) and self.noise_k >= 0):
-            raise ValueError(f"noise_k must be a finite number >= 0, got {self.noise_k}")
         if self.noise_std is None:
             self.noise_std = default_noise_std(self.task)
         if not (math.isfinite(self.noise_std) and self.noise_std >= 0):
@@ -103,7 +102,6 @@ class CollectConfig:
             cameras=tuple(self.cameras),
             image_size=self.image_size,
             base_seed=self.seed,
-            noise_k=self.noise_k,
             noisy_fraction=self.noisy_fraction,
             noise_std=self.noise_std,
         )

@@ -188,5 +188,15 @@ def read_recipe(root: Path) -> EpisodeRecipe | None:
     summary = read_summary(root)
     if summary is None:
         return None
-    recipe = summary["recipe"]
-    return EpisodeRecipe(**{"scene": 1, **recipe, "cameras": tuple(recipe["cameras"])})  # 1: before versions
+    return recipe_from_summary(summary["recipe"])
+
+
+def recipe_from_summary(stored: dict) -> EpisodeRecipe:
+    """The recipe a collection summary stores. Older summaries: `scene` 1 (before versions),
+    and the noise's scale in two knobs, `noise_k` times `noise_std` (the collections all
+    used k = 1, so their std reads unchanged)."""
+    recipe = {"scene": 1, **stored, "cameras": tuple(stored["cameras"])}
+    k = recipe.pop("noise_k", 1.0)
+    if k != 1.0:
+        recipe["noise_std"] = k * recipe["noise_std"]
+    return EpisodeRecipe(**recipe)

@@ -7,9 +7,11 @@ renders LeRobot's template around it, with the dataset structure).
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from importlib.resources import files
 from string import Template
 
+from lerobot_murm.collection.dataset import recipe_from_summary
 from lerobot_murm.env.cameras import CAMERAS, EndEffectorCamera
 from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, TASK_DESCRIPTIONS
 from lerobot_murm.features import goal_image_key, image_key, latent_goal_key, latent_key
@@ -31,7 +33,7 @@ def card_template(name: str) -> Template:
 
 
 def render_card(summary: dict, repo_id: str) -> str:
-    recipe = summary["recipe"]
+    recipe = asdict(recipe_from_summary(summary["recipe"]))  # older summaries' two noise knobs read as one
     cameras = recipe["cameras"]
     rows = []
     for camera in cameras:
@@ -40,7 +42,7 @@ def render_card(summary: dict, repo_id: str) -> str:
     rate = summary["success_rate"]
     command = (
         f"murm collect --task {recipe['task']} --episodes {summary['episodes']} --seed {recipe['base_seed']} "
-        f"--noise-k {recipe['noise_k']} --noise-std {recipe['noise_std']} --noisy-fraction {recipe['noisy_fraction']} "
+        f"--noise-std {recipe['noise_std']} --noisy-fraction {recipe['noisy_fraction']} "
         f"--cameras {','.join(cameras)}"
     )
     return card_template(DEMONSTRATIONS_TEMPLATE).substitute(
@@ -54,7 +56,6 @@ def render_card(summary: dict, repo_id: str) -> str:
         n_cameras=len(cameras),
         image_size=recipe["image_size"],
         camera_rows="\n".join(rows),
-        noise_k=recipe["noise_k"],
         noise_std=recipe["noise_std"],
         noisy_percent=f"{recipe['noisy_fraction']:.0%}",
         base_seed=recipe["base_seed"],

@@ -8,8 +8,15 @@ import pytest
 import torch
 
 from lerobot_murm.policy.configuration_murm import MurmConfig
-from lerobot_murm.policy.modeling_murm import ACTION, DONE, NEXT_STATE, REWARD, STATE, MurmPolicy
+from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.policy.precision import cpu_description, cpu_has_native_bf16, resolve_precision
+from lerobot_murm.policy.replay import (
+    TRANSITION_ACTION as ACTION,
+    TRANSITION_DONE as DONE,
+    TRANSITION_NEXT_STATE as NEXT_STATE,
+    TRANSITION_REWARD as REWARD,
+    TRANSITION_STATE as STATE,
+)
 from lerobot_murm.vqvae import VQVAEConfig
 
 CAMERAS = ["global", "adjacent"]

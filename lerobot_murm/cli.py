@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 from contextlib import ExitStack, nullcontext
 from pathlib import Path
 
@@ -19,24 +20,30 @@ def _demo(args: argparse.Namespace) -> None:
         print("note: the noiseless scripted expert failed an episode (see the rollout PNGs)")
 
 
+# the CollectConfig fields `murm collect` takes as options (first_episode is a shard's)
+COLLECT_OPTIONS = (
+    "task",
+    "root",
+    "episodes",
+    "workers",
+    "repo_id",
+    "cameras",
+    "image_size",
+    "seed",
+    "noise_std",
+    "noisy_fraction",
+    "resume",
+    "overwrite",
+    "flush_every",
+)
+VQVAE_OPTIONS = ("steps", "batch_size", "seed")  # the VQVAEConfig fields `murm train-vqvae` takes as options
+
+
 def _collect(args: argparse.Namespace) -> None:
     from lerobot_murm.collection import CollectConfig, collect
+    from lerobot_murm.config_args import config_arguments
 
-    config = CollectConfig(
-        task=args.task,
-        root=Path(args.root),
-        episodes=args.episodes,
-        workers=args.workers,
-        repo_id=args.repo_id,
-        cameras=tuple(args.cameras.split(",")),
-        image_size=args.image_size,
-        seed=args.seed,
-        noisy_fraction=args.noisy_fraction,
-        noise_std=args.noise_std,
-        resume=args.resume,
-        overwrite=args.overwrite,
-        flush_every=args.flush_every,
-    )
+    config = CollectConfig(**config_arguments(args, COLLECT_OPTIONS))
     summary = collect(config)
     print(f"{summary['episodes']} episodes in {config.root}, expert success {summary['success_rate']:.1%}")
     if args.push_to_hub:
@@ -63,13 +70,14 @@ def _train_vqvae(args: argparse.Namespace) -> None:
     from dataclasses import replace
 
     from lerobot_murm.checks import check_writable
+    from lerobot_murm.config_args import config_arguments
     from lerobot_murm.env.cameras import validate_camera_names
     from lerobot_murm.vqvae import VQVAEConfig
     from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.train import train_vqvae
 
     validate_camera_names([args.camera])
-    config = replace(VQVAEConfig(), steps=args.steps, batch_size=args.batch_size, seed=args.seed)
+    config = replace(VQVAEConfig(), **config_arguments(args, VQVAE_OPTIONS))
     repo_id, root = dataset_location(args.dataset)
     out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{args.camera}")
     check_writable(out)
@@ -221,10 +229,34 @@ def _config_file(value: str) -> str:
 
 
 class OneLineErrors(argparse.ArgumentParser):
-    """A subcommand's bad arguments in one line (exit 2) instead of its whole usage."""
+    """A subcommand's bad arguments in one line (exit 2) instead of its whole usage. Options
+    generated from a stage config (`generated_options`) are added when the subcommand is
+    parsed, so that `murm` imports a stage's code only for that stage's command."""
+
+    generated_options: Callable[[argparse.ArgumentParser], None] | None = None
 
     def error(self, message: str) -> None:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def parse_known_args(self, args=None, namespace=None):
+        if self.generated_options is not None:
+            add, self.generated_options = self.generated_options, None
+            add(self)
+        return super().parse_known_args(args, namespace)
+
+
+def _collect_options(parser: argparse.ArgumentParser) -> None:
+    from lerobot_murm.collection import CollectConfig
+    from lerobot_murm.config_args import add_config_arguments
+
+    add_config_arguments(parser, CollectConfig, COLLECT_OPTIONS)
+
+
+def _vqvae_options(parser: argparse.ArgumentParser) -> None:
+    from lerobot_murm.config_args import add_config_arguments
+    from lerobot_murm.vqvae import VQVAEConfig
+
+    add_config_arguments(parser, VQVAEConfig, VQVAE_OPTIONS)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -238,30 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_demo)
 
     col = commands.add_parser("collect", help="collect scripted-expert demonstrations into a LeRobotDataset")
-    col.add_argument("--task", required=True, help="place_in_box, place_in_random_box or pick_up")
-    col.add_argument("--root", required=True, help="dataset folder (created; never overwritten silently)")
-    col.add_argument("--episodes", type=int, default=1000, help="episodes to have in the end (default: %(default)s)")
-    col.add_argument("--workers", type=int, default=2, help="simulator processes (default: %(default)s)")
-    col.add_argument("--repo-id", default=None, help="Hub id, e.g. user/murm_place_in_box (default: local/murm_TASK)")
-    col.add_argument("--cameras", default="global,adjacent,side,top,active", help="comma-separated (default: all five)")
-    col.add_argument("--image-size", type=int, default=48)
-    col.add_argument("--seed", type=int, default=0, help="base seed: episode i depends on it and i alone")
-    col.add_argument(
-        "--noise-std",
-        type=float,
-        default=None,
-        help="expert noise std, a = clip(a* + N(0, std), -1, 1) (default: the task's calibrated std, about 75%% "
-        "expert success as in the paper; the paper's k N(0, 0.1) is std 0.1 k; --noisy-fraction 0 the clean expert)",
-    )
-    col.add_argument("--noisy-fraction", type=float, default=1.0, help="share of noisy episodes (default: 1)")
-    col.add_argument("--resume", action="store_true", help="carry on an interrupted or shorter collection")
-    col.add_argument("--overwrite", action="store_true", help="delete an existing murm dataset at --root first")
-    col.add_argument(
-        "--flush-every",
-        type=int,
-        default=10,
-        help="episodes between flushes to disk: the most a hard stop loses (default: %(default)s)",
-    )
+    col.generated_options = _collect_options  # --task, --root, ... --flush-every: CollectConfig's fields
     col.add_argument("--push-to-hub", action="store_true", help="push to --repo-id when done")
     col.add_argument("--private", action="store_true", help="with --push-to-hub: a private Hub repo")
     col.set_defaults(func=_collect)
@@ -280,9 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     vq = commands.add_parser("train-vqvae", help="train one camera's VQ-VAE on a collected dataset")
     vq.add_argument("--dataset", required=True, help="a dataset folder or a Hub repo id")
     vq.add_argument("--camera", required=True)
-    vq.add_argument("--steps", type=int, default=2500)
-    vq.add_argument("--batch-size", type=int, default=128)
-    vq.add_argument("--seed", type=int, default=0)
+    vq.generated_options = _vqvae_options  # --steps, --batch-size, --seed: VQVAEConfig's fields
     vq.add_argument("--out", default=None, help="checkpoint folder (default: outputs/vqvae/DATASET/CAMERA)")
     vq.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     vq.set_defaults(func=_train_vqvae)

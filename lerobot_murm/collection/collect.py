@@ -52,22 +52,25 @@ from lerobot_murm.locking import exclusive
 
 @dataclass
 class CollectConfig:
-    task: str
-    root: Path
-    episodes: int = 1000
-    workers: int = 2
-    repo_id: str | None = None  # default: local/murm_<task>
-    cameras: tuple[str, ...] = CAMERA_NAMES
-    image_size: int = 48
-    seed: int = 0
-    noisy_fraction: float = 1.0
-    # the expert noise's std, its one knob (paper 4.1's k N(0, 0.1) is std 0.1 k); None: the
-    # task's calibrated std (about 75 % success)
+    """`murm collect`'s settings; its options are these fields (config_args.py), the comments their help."""
+
+    task: str  # place_in_box, place_in_random_box or pick_up
+    root: Path  # dataset folder (created; never overwritten silently)
+    episodes: int = 1000  # episodes to have in the end
+    workers: int = 2  # simulator processes
+    repo_id: str | None = None  # Hub id, e.g. user/murm_place_in_box (default: local/murm_TASK)
+    cameras: tuple[str, ...] = CAMERA_NAMES  # the cameras recorded
+    image_size: int = 48  # pixels of each square camera image
+    seed: int = 0  # base seed: episode i depends on it and i alone
+    noisy_fraction: float = 1.0  # share of noisy episodes
+    # expert noise std, a = clip(a* + N(0, std), -1, 1), the noise's one knob (paper 4.1's
+    # k N(0, 0.1) is std 0.1 k); default: the task's calibrated std, about 75 % expert success
+    # as in the paper (noisy_fraction 0: the clean expert)
     noise_std: float | None = None
-    resume: bool = False
-    overwrite: bool = False
+    resume: bool = False  # carry on an interrupted or shorter collection
+    overwrite: bool = False  # delete an existing murm dataset at root first
     first_episode: int = 0  # a shard of a larger collection holds episodes first_episode, first_episode + 1, ...
-    flush_every: int = 10  # episodes between flushes: the most a hard stop can lose
+    flush_every: int = 10  # episodes between flushes to disk: the most a hard stop loses
 
     def __post_init__(self) -> None:
         if self.task not in TASK_NAMES:

@@ -24,11 +24,11 @@ class VQVAEConfig:
     ema_decay: float = 0.99  # EMA codebook updates (van den Oord et al. 2017, appendix)
     dead_code_threshold: float = 1.0  # codes used less than this (EMA count) are restarted
     # training
-    steps: int = 2500
-    batch_size: int = 128
+    steps: int = 2500  # training updates
+    batch_size: int = 128  # images per update
     learning_rate: float = 1e-3
     holdout_fraction: float = 0.05  # whole episodes kept out for validation
-    seed: int = 0
+    seed: int = 0  # initialisation, batches and the held-out split
     dataset: dict = field(default_factory=dict)  # what it was trained on (repo id, root, fingerprint)
 
     def __post_init__(self) -> None:

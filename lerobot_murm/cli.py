@@ -379,8 +379,9 @@ DEBUG_VARIABLE = "MURM_DEBUG"  # set to 1: errors show their traceback, as with 
 
 
 def _exit_code(error: Exception) -> int | None:
-    """2 for bad input (usage), 1 for a failure the user can act on, None for a bug
-    (which keeps its traceback)."""
+    """2 for bad input (usage; a missing or unreadable input: no such file or folder, a torn
+    dataset or encoder), 1 for a failure the user can act on, None for a bug (which keeps its
+    traceback)."""
     from draccus.utils import DraccusException
 
     from lerobot_murm.checkpointing import CheckpointError
@@ -392,7 +393,7 @@ def _exit_code(error: Exception) -> int | None:
     from lerobot_murm.vqvae.encoder_files import IncompleteEncoder
     from lerobot_murm.vqvae.frames import UnreadableDataset
 
-    if isinstance(error, ValueError | DraccusException):
+    if isinstance(error, ValueError | DraccusException | FileNotFoundError | UnreadableDataset | IncompleteEncoder):
         return 2
     failures = (
         OSError,
@@ -401,9 +402,7 @@ def _exit_code(error: Exception) -> int | None:
         UnrepairableCollection,
         HubUnavailable,
         TrainingInterrupted,
-        UnreadableDataset,
         FolderInUse,
-        IncompleteEncoder,
     )
     return 1 if isinstance(error, failures) else None
 

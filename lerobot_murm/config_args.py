@@ -100,3 +100,12 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type, names: Iter
 def config_arguments(args: argparse.Namespace, names: Iterable[str]) -> dict:
     """The parsed values of the options `add_config_arguments` made, as keyword arguments."""
     return {name: getattr(args, name) for name in names}
+
+
+def default_of(cls: type, name: str):
+    """The default of `cls`'s field `name`: a grid spec that mirrors a stage config's field
+    takes the stage's default from here instead of writing it again."""
+    field = {f.name: f for f in dataclasses.fields(cls)}[name]
+    if field.default is dataclasses.MISSING:
+        raise ValueError(f"{cls.__name__}.{name} has no plain default")
+    return field.default

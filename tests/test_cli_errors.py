@@ -89,7 +89,7 @@ def test_overwrite_deletes_only_what_murm_made(tmp_path, capsys):
 def test_a_missing_dataset_folder_is_reported_as_such(tmp_path, capsys):
     missing = tmp_path / "no" / "such"
     code, line = murm_error(["train-vqvae", "--dataset", missing, "--camera", "global"], capsys)
-    assert code == 1 and f"dataset folder {missing} does not exist" in line and "Repo id" not in line
+    assert code == 2 and f"dataset folder {missing} does not exist" in line and "Repo id" not in line
 
 
 def test_a_torn_dataset_is_a_clear_error(tmp_path, capsys):
@@ -100,12 +100,12 @@ def test_a_torn_dataset_is_a_clear_error(tmp_path, capsys):
     data = next(root.glob("data/*/*.parquet"))
     data.write_bytes(data.read_bytes()[:-100])  # as a hard stop leaves an unclosed file
     code, line = murm_error(["train-vqvae", "--dataset", root, "--camera", "global", "--out", tmp_path / "vq"], capsys)
-    assert code == 1 and f"cannot read the dataset at {root}" in line and "--resume" in line
+    assert code == 2 and f"cannot read the dataset at {root}" in line and "--resume" in line
     # `datasets` logs the error twice before raising it: held back, stderr is the one line
     code, lines = murm_stderr(
         ["train-vqvae", "--dataset", root, "--camera", "global", "--out", tmp_path / "vq"], tmp_path
     )
-    assert code == 1 and len(lines) == 1 and lines[0].startswith(f"murm train-vqvae: cannot read the dataset at {root}")
+    assert code == 2 and len(lines) == 1 and lines[0].startswith(f"murm train-vqvae: cannot read the dataset at {root}")
 
 
 FULL_DISK = """
@@ -148,11 +148,11 @@ def test_a_torn_encoder_is_named_with_its_file(tmp_path, capsys):
     (encoder / "config.json").write_bytes(b"")  # what a kill between the two files of a save used to leave
     encode = ["encode", "--dataset", tmp_path, "--encoders", encoder, "--cache-dir", tmp_path / "cache"]
     code, line = murm_error(encode, capsys)
-    assert code == 1
+    assert code == 2
     assert f"encoder {encoder} is incomplete (config.json empty); run murm train-vqvae again to finish it" in line
     (encoder / "config.json").unlink()
     code, line = murm_error(encode, capsys)
-    assert code == 1 and f"encoder {encoder} is incomplete (config.json missing)" in line
+    assert code == 2 and f"encoder {encoder} is incomplete (config.json missing)" in line
 
 
 @pytest.mark.parametrize("command", ["encode", "train", "check-encoders"])
@@ -167,14 +167,14 @@ def test_a_truncated_encoder_is_one_line(train_yaml, command):
         "check-encoders": ["check-encoders", "--dataset", folder, "--encoders", encoder],
     }[command]
     code, lines = murm_stderr(argv, folder)
-    assert code == 1 and len(lines) == 1, lines[-20:]
+    assert code == 2 and len(lines) == 1, lines[-20:]
     assert lines[0].startswith(f"murm {command}: encoder {encoder} is incomplete (model.safetensors unreadable: ")
     assert "run murm train-vqvae again to finish it" in lines[0]
 
 
 def test_encode_checks_its_encoders_and_cache_folder_before_encoding(tmp_path, capsys):
     code, line = murm_error(["encode", "--dataset", tmp_path, "--encoders", tmp_path / "none"], capsys)
-    assert code == 1 and f"no VQ-VAE checkpoint in {tmp_path / 'none'}" in line
+    assert code == 2 and f"no VQ-VAE checkpoint in {tmp_path / 'none'}" in line
     (tmp_path / "cache").write_text("a file")
     code, line = murm_error(
         ["encode", "--dataset", tmp_path, "--encoders", tmp_path, "--cache-dir", tmp_path / "cache"], capsys
@@ -261,9 +261,9 @@ def test_the_whole_reproduce_grid_is_checked_before_collecting(tmp_path, capsys)
 
 def test_other_commands_name_the_missing_folder(tmp_path, capsys):
     code, line = murm_error(["report", "--results", tmp_path / "none"], capsys)
-    assert code == 1 and f"no results folder {tmp_path / 'none'}" in line
+    assert code == 2 and f"no results folder {tmp_path / 'none'}" in line
     code, line = murm_error(["push", "--root", tmp_path, "--repo-id", "user/ds"], capsys)
-    assert code == 1 and "is not a dataset `murm collect` or `murm encode --to-dataset` made" in line
+    assert code == 2 and "is not a dataset `murm collect` or `murm encode --to-dataset` made" in line
 
 
 def test_a_torn_grid_table_is_a_clear_error(tmp_path, capsys):

@@ -14,23 +14,29 @@ from pathlib import Path
 
 import draccus
 
+from lerobot_murm.collection import CollectConfig
+from lerobot_murm.config_args import default_of
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES
+from lerobot_murm.policy.configuration_murm import MurmConfig
+from lerobot_murm.training.train import TrainConfig
+from lerobot_murm.vqvae import VQVAEConfig
 
 
+# The specs' defaults are the stage configs' own (`default_of`), written once there.
 @dataclass
 class CollectionSpec:
-    episodes: int = 1000
-    noise_std: float | None = None  # None: each task's calibrated std (about 75 % expert success)
-    noisy_fraction: float = 1.0
-    seed: int = 0
-    workers: int = 2
-    image_size: int = 48
+    episodes: int = default_of(CollectConfig, "episodes")
+    noise_std: float | None = default_of(CollectConfig, "noise_std")  # None: each task's calibrated std
+    noisy_fraction: float = default_of(CollectConfig, "noisy_fraction")
+    seed: int = default_of(CollectConfig, "seed")
+    workers: int = default_of(CollectConfig, "workers")
+    image_size: int = default_of(CollectConfig, "image_size")
 
 
 @dataclass
 class VQVAESpec:
-    steps: int = 2500  # every camera trains this many steps: one rule for all five (scene 3 on)
-    batch_size: int = 128
+    steps: int = default_of(VQVAEConfig, "steps")  # every camera trains this many steps (scene 3 on)
+    batch_size: int = default_of(VQVAEConfig, "batch_size")
     # per-camera exceptions to `steps`; empty by default. Scene-2 grids gave the active camera
     # 5000 (their config.yaml records it); a table that compares cameras should not.
     camera_steps: dict[str, int] = field(default_factory=dict)
@@ -38,13 +44,13 @@ class VQVAESpec:
 
 @dataclass
 class TrainSpec:
-    steps: int = 30_000
-    batch_size: int = 256
-    log_every: int = 250
-    eval_every: int = 5_000
-    eval_episodes: int = 20
-    final_eval_episodes: int = 100
-    eval_envs: int = 4
+    steps: int = 30_000  # a grid's own default (`murm train`'s is 50,000); the tables set theirs
+    batch_size: int = default_of(TrainConfig, "batch_size")
+    log_every: int = default_of(TrainConfig, "log_every")
+    eval_every: int = default_of(TrainConfig, "eval_every")
+    eval_episodes: int = default_of(TrainConfig, "eval_episodes")
+    final_eval_episodes: int = default_of(TrainConfig, "final_eval_episodes")
+    eval_envs: int = default_of(TrainConfig, "eval_envs")
 
 
 @dataclass
@@ -219,11 +225,6 @@ class ReproduceConfig:
     def validate_stages(self) -> None:
         """Every stage's config of every cell, built as the grid will build it (no disk): a
         bad method, camera, policy field or number fails now, not after hours of collection."""
-        from lerobot_murm.collection import CollectConfig
-        from lerobot_murm.policy.configuration_murm import MurmConfig
-        from lerobot_murm.training.train import TrainConfig
-        from lerobot_murm.vqvae import VQVAEConfig
-
         unknown = [c for c in self.vqvae.camera_steps if c not in CAMERA_NAMES]
         if unknown:
             raise ValueError(f"vqvae.camera_steps: unknown cameras {unknown}; choose from {list(CAMERA_NAMES)}")

@@ -213,8 +213,8 @@ def train_yaml(tmp_path) -> Path:
         (["--eval_mask_p=[1.5]"], 2, "eval_mask_p must be masking levels in [0, 1)"),
         (["--stepz=10"], 2, "unrecognized arguments: --stepz=10"),
         (["--policy.method=fancy"], 2, "unknown method 'fancy'"),
-        (["--policy.encoder_dir=/no/encoders"], 1, "no VQ-VAE for camera 'global'"),
-        ([], 1, "does not exist"),  # the dataset: checked before any policy or cache is built
+        (["--policy.encoder_dir=/no/encoders"], 2, "no VQ-VAE for camera 'global'"),
+        ([], 2, "does not exist"),  # the dataset: checked before any policy or cache is built
     ],
 )
 def test_bad_train_configs_fail_before_any_work(train_yaml, capsys, overrides, code, message):

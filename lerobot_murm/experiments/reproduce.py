@@ -273,6 +273,22 @@ def build_encoders(executor, config: ReproduceConfig, encoders: list[tuple[Path,
         keep_encoders(config, [(root, camera)])
 
 
+def build_stages(executor, shipped: ReproduceConfig, todo: list[tuple]) -> None:
+    """The datasets and encoders the runs `todo` ((config, task, cell, seed)) need: each
+    cell's own dataset and its task's default one, whose encoders every cell uses."""
+    needed = {
+        c.root: c
+        for _, task, cell, _ in todo
+        for c in (collect_config(shipped, task, cell), collect_config(shipped, task))
+    }
+    build_datasets(executor, list(needed.values()), shipped.collection.workers)
+    build_encoders(
+        executor,
+        shipped,
+        sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras}),
+    )
+
+
 def remaining_time(elapsed_s: float, finished: int, left: int) -> str:
     """'; N runs left, about T' at this sitting's pace so far (runs side by side included)."""
     if not left:
@@ -335,17 +351,7 @@ def _run_budget_grid(
                 curves_dir / result_path(config, task, cell, seed).name, run_recipe(config, task, cell, seed), cap
             )
         ]
-        needed = {
-            c.root: c
-            for _, task, cell, _ in todo
-            for c in (collect_config(shipped, task, cell), collect_config(shipped, task))
-        }
-        build_datasets(executor, list(needed.values()), config.collection.workers)
-        build_encoders(
-            executor,
-            shipped,
-            sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras}),
-        )
+        build_stages(executor, shipped, todo)
         jobs = [job + (cap,) for job in training_jobs(todo, together=config.stack_seeds)]
         started, finished = time.perf_counter(), 0
         for (_, task, cell, seeds, _), results in executor.map(train_run, jobs):
@@ -425,17 +431,7 @@ def _run_grid(config: ReproduceConfig, executor, out: Path) -> Path:
             _store(path, reused | {"experiment": config.name, "cell": cell.label})
         else:
             todo.append((shipped, task, cell, seed))
-    needed = {
-        c.root: c
-        for _, task, cell, _ in todo
-        for c in (collect_config(shipped, task, cell), collect_config(shipped, task))
-    }
-    build_datasets(executor, list(needed.values()), config.collection.workers)
-    build_encoders(
-        executor,
-        shipped,
-        sorted({(encoder_root(shipped, task), camera) for _, task, cell, _ in todo for camera in cell.cameras}),
-    )
+    build_stages(executor, shipped, todo)
     if config.prepare_only:
         print(f"{config.name}: datasets and encoders ready; no run trained (prepare_only)", flush=True)
         return out

@@ -287,23 +287,9 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
 
         def run_evaluation(at_step: int, eval_seeds: list[int], split: str, authors: bool = False) -> list[list[dict]]:
             """Each seed's rows of eval.csv."""
-            levels = [(mask_p, "paper") for mask_p in config.eval_mask_p] + ([(1 / 3, "authors")] if authors else [])
-            rows: list[list[dict]] = [[] for _ in runs]
-            policies = updater.write_back()
-            for mask_p, mode in levels:
-                for own, result in zip(rows, evaluator.evaluate(policies, eval_seeds, mask_p, mode), strict=True):
-                    own.append(
-                        {
-                            "step": at_step,
-                            "mask_p": round(mask_p, 4),
-                            "success_rate": result.success_rate,
-                            "episodes": len(eval_seeds),
-                            "seconds": round(result.seconds, 1),
-                            "split": split,
-                            "mask_mode": mode,
-                        }
-                    )
-            return rows
+            return evaluation_rows(
+                evaluator, updater.write_back(), eval_seeds, config.eval_mask_p, authors, at_step, split
+            )
 
         seeds = evaluation_seeds(config.eval_episodes, config.validation_seed)
         window_start, window_first = time.perf_counter(), loop.step
@@ -368,6 +354,35 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
         write_atomic(run.out / "final_eval.json", (json.dumps(run.summary, indent=2) + "\n").encode())
 
 
+def evaluation_rows(
+    evaluator: Evaluator,
+    policies: list[MurmPolicy],
+    seeds: list[int],
+    mask_ps: list[float],
+    authors: bool,
+    step: int,
+    split: str,
+) -> list[list[dict]]:
+    """Each policy's rows of eval.csv: its success on the episodes `seeds` at every masking
+    level (and the authors' masking protocol where asked)."""
+    levels = [(mask_p, "paper") for mask_p in mask_ps] + ([(1 / 3, "authors")] if authors else [])
+    rows: list[list[dict]] = [[] for _ in policies]
+    for mask_p, mode in levels:
+        for own, result in zip(rows, evaluator.evaluate(policies, seeds, mask_p, mode), strict=True):
+            own.append(
+                {
+                    "step": step,
+                    "mask_p": round(mask_p, 4),
+                    "success_rate": result.success_rate,
+                    "episodes": len(seeds),
+                    "seconds": round(result.seconds, 1),
+                    "split": split,
+                    "mask_mode": mode,
+                }
+            )
+    return rows
+
+
 def test_kept(configs: list[TrainConfig], step: int) -> list[dict]:
     """Seeds' runs trained with `keep_every`, tested once at `step` (a budget chosen after
     training on their validation curves): each one's summary as a run finished at `step`
@@ -387,26 +402,12 @@ def test_kept(configs: list[TrainConfig], step: int) -> list[dict]:
             raise CheckpointError(f"no policy kept at step {step}: {', '.join(missing)} (train with keep_every)")
         start = time.perf_counter()
         policies = [MurmPolicy.from_pretrained(path).to(device) for path in kept]
-        levels = [(p, "paper") for p in first.eval_mask_p] + (
-            [(1 / 3, "authors")] if first.eval_authors_masking else []
-        )
         test_seeds = evaluation_seeds(first.final_eval_episodes, first.test_seed)
         image_size = policies[0].config.encoder_config(policies[0].config.cameras[0]).image_size
-        rows: list[list[dict]] = [[] for _ in configs]
         with Evaluator(first.task, policies[0].config.cameras, image_size, first.eval_envs, len(policies)) as evaluator:
-            for mask_p, mode in levels:
-                for own, result in zip(rows, evaluator.evaluate(policies, test_seeds, mask_p, mode), strict=True):
-                    own.append(
-                        {
-                            "step": step,
-                            "mask_p": round(mask_p, 4),
-                            "success_rate": result.success_rate,
-                            "episodes": len(test_seeds),
-                            "seconds": round(result.seconds, 1),
-                            "split": "test",
-                            "mask_mode": mode,
-                        }
-                    )
+            rows = evaluation_rows(
+                evaluator, policies, test_seeds, first.eval_mask_p, first.eval_authors_masking, step, "test"
+            )
         summaries = []
         for config, path, test_rows in zip(configs, stored, rows, strict=True):
             validation = [

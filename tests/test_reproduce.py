@@ -316,6 +316,23 @@ def test_every_experiment_config_parses(path):
     assert config.name == path.stem and config.cells
 
 
+def test_table7_reads_k_both_ways_a_share_of_noisy_episodes_and_a_scale_of_the_noise():
+    from lerobot_murm.experiments.artifacts import collect_config
+    from lerobot_murm.experiments.configuration_reproduce import CellSpec
+    from lerobot_murm.expert import default_noise_std
+
+    config = load_reproduce_config(REPO / "configs/reproduce/table7.yaml")
+    cells = {cell.label: cell for cell in config.cells}
+    std = default_noise_std("place_in_box")
+    share = collect_config(config, "place_in_box", cells["noisy25"])
+    assert share.noisy_fraction == 0.25 and share.noise_std == pytest.approx(std)
+    scaled = collect_config(config, "place_in_box", cells["scale25"])
+    assert scaled.noisy_fraction == 1.0 and scaled.noise_std == pytest.approx(0.25 * std)
+    assert len({collect_config(config, "place_in_box", c).root for c in config.cells}) == len(config.cells)
+    with pytest.raises(ValueError, match="noise_scale"):
+        CellSpec(method="separated_q", cameras=["global"], noise_scale=0.5, noisy_fraction=0.5)
+
+
 TRAINING_CONFIGS = sorted(p for p in REPO.glob("configs/*/*.yaml") if p.parent.name != "reproduce")
 
 

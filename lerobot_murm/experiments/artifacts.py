@@ -50,7 +50,8 @@ def dataset_root(config: ReproduceConfig, task: str, cell: CellSpec | None = Non
     """Where the cell's demonstrations live (no cell: the collection's default recipe)."""
     c = config.collection
     episodes, noisy = config.cell_episodes(cell), config.cell_noisy_fraction(cell)
-    std = default_noise_std(task) if c.noise_std is None else c.noise_std
+    std = config.cell_noise_std(task, cell)
+    std = default_noise_std(task) if std is None else std
     name = f"{task}-scene{SCENE_VERSION}-{episodes}ep-std{std:g}-noisy{noisy:g}-seed{c.seed}-{c.image_size}px"
     return Path(config.work_dir) / "datasets" / name
 
@@ -66,7 +67,7 @@ def collect_config(config: ReproduceConfig, task: str, cell: CellSpec | None = N
         cameras=CAMERA_NAMES,
         image_size=c.image_size,
         seed=c.seed,
-        noise_std=c.noise_std,  # None: the task's std
+        noise_std=config.cell_noise_std(task, cell),  # None: the task's std
         noisy_fraction=config.cell_noisy_fraction(cell),
     )
 

@@ -17,6 +17,7 @@ import draccus
 from lerobot_murm.collection import CollectConfig
 from lerobot_murm.config_args import default_of
 from lerobot_murm.env import CAMERA_NAMES, TASK_NAMES
+from lerobot_murm.expert import default_noise_std
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.training.train import TrainConfig
 from lerobot_murm.vqvae import VQVAEConfig
@@ -94,6 +95,9 @@ class CellSpec:
     epsilon_quantile: list[float] | None = None  # per camera, a share (0-1) of random frames' goal distances
     episodes: int | None = None  # demonstrations (Table 7); default: the collection's
     noisy_fraction: float | None = None  # share of noisy demonstrations (Table 7)
+    # every demonstration noisy, at this multiple of the task's calibrated noise std (Table 7's
+    # other reading of the paper's a = a* + k N(0, 0.1): k as a scale, not a share)
+    noise_scale: float | None = None
     policy: dict = field(default_factory=dict)  # any other MurmConfig field
     steps: int | None = None  # updates of this cell's runs; default: the grid's train.steps
 
@@ -122,6 +126,11 @@ class CellSpec:
             raise ValueError(f"cell {self.label}: steps must be at least 1, got {self.steps}")
         if any(not 0 < q < 1 for q in self.epsilon_quantile or []):
             raise ValueError(f"cell {self.label}: epsilon_quantile values must be in (0, 1)")
+        if self.noise_scale is not None and (self.noise_scale <= 0 or self.noisy_fraction is not None):
+            raise ValueError(
+                f"cell {self.label}: noise_scale must be positive and makes every demonstration noisy "
+                "(do not set noisy_fraction with it)"
+            )
 
 
 @dataclass
@@ -190,7 +199,15 @@ class ReproduceConfig:
 
     def cell_noisy_fraction(self, cell: CellSpec | None = None) -> float:
         """Share of noisy demonstrations in the cell's dataset (no cell: the collection's default)."""
+        if cell is not None and cell.noise_scale is not None:
+            return 1.0
         return self.collection.noisy_fraction if cell is None or cell.noisy_fraction is None else cell.noisy_fraction
+
+    def cell_noise_std(self, task: str, cell: CellSpec | None = None) -> float | None:
+        """The noise std of the cell's noisy demonstrations (None: the task's calibrated std)."""
+        if cell is not None and cell.noise_scale is not None:
+            return cell.noise_scale * (self.collection.noise_std or default_noise_std(task))
+        return self.collection.noise_std
 
     def cell_steps(self, cell: CellSpec) -> int:
         """Updates of the cell's runs (a budget grid: its first cap)."""
@@ -244,7 +261,7 @@ class ReproduceConfig:
                         workers=c.workers,
                         image_size=c.image_size,
                         seed=c.seed,
-                        noise_std=c.noise_std,
+                        noise_std=self.cell_noise_std(task, cell),
                         noisy_fraction=self.cell_noisy_fraction(cell),
                     )
                     TrainConfig(dataset="", task=task, policy=policy, seed=min(self.seeds), **self.train_settings(cell))

@@ -352,7 +352,8 @@ def _run_budget_grid(
             )
         ]
         build_stages(executor, shipped, todo)
-        jobs = [job + (cap,) for job in training_jobs(todo, together=config.stack_seeds)]
+        # a timed grid (Table 1) trains each seed alone, one at a time: its time per update is a result
+        jobs = [job + (cap,) for job in training_jobs(todo, together=config.stack_seeds and not config.timed)]
         started, finished = time.perf_counter(), 0
         for (_, task, cell, seeds, _), results in executor.map(train_run, jobs):
             for seed, result in zip(seeds, results, strict=True):

@@ -6,6 +6,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
+import yaml
 
 # LeRobotDataset reads parquet through `datasets`, which keeps an Arrow copy of every new
 # dataset root in ~/.cache/huggingface/datasets. The suite makes dozens of temporary roots,
@@ -87,3 +88,32 @@ def tiny_pipeline(tmp_path_factory):
 
 
 TINY_REPO = "local/place_in_box"
+
+
+@pytest.fixture
+def tiny_train_yaml(tiny_pipeline, tmp_path):
+    """Writes a `murm train` config for the tiny pipeline (concat on both cameras, a few steps,
+    one evaluation episode, run and cache in tmp_path) with any field overridden; returns its path."""
+    root, encoders = tiny_pipeline
+
+    def write(**overrides) -> Path:
+        policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
+        config = {
+            "dataset": str(root),
+            "task": "place_in_box",
+            "output_dir": str(tmp_path / "run"),
+            "cache_dir": str(tmp_path / "cache"),
+            "steps": 4,
+            "batch_size": 16,
+            "log_every": 1,
+            "eval_every": 100,
+            "eval_episodes": 1,
+            "final_eval_episodes": 1,
+            "eval_envs": 1,
+            "policy": policy,
+        } | overrides
+        path = tmp_path / "train.yaml"
+        path.write_text(yaml.safe_dump(config))
+        return path
+
+    return write

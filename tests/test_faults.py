@@ -18,7 +18,6 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import torch
-import yaml
 
 from lerobot_murm import checkpointing
 from lerobot_murm.checkpointing import (
@@ -326,27 +325,10 @@ def test_a_resumed_run_sets_log_rows_aside_instead_of_deleting_them(tmp_path):
 
 
 @pytest.mark.slow
-def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_pipeline, tmp_path):
+def test_murm_train_resumes_from_the_checkpoint_a_torn_swap_left(tiny_train_yaml, tmp_path):
     """Killed between the two renames of its last checkpoint swap, a run has only
     `checkpoints/last.old`: the next run recovers it and resumes there."""
-    root, encoders = tiny_pipeline
-    policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
-    config = {
-        "dataset": str(root),
-        "task": "place_in_box",
-        "output_dir": str(tmp_path / "run"),
-        "cache_dir": str(tmp_path / "cache"),
-        "steps": 4,
-        "batch_size": 16,
-        "log_every": 1,
-        "eval_every": 100,
-        "eval_episodes": 1,
-        "final_eval_episodes": 1,
-        "eval_envs": 1,
-        "policy": policy,
-    }
-    path = tmp_path / "train.yaml"
-    path.write_text(yaml.safe_dump(config))
+    path = tiny_train_yaml()
     command = [str(MURM), "train", "--config", str(path)]
     first = run(command, timeout=600, env=os.environ | {"HF_HUB_OFFLINE": "1"})
     assert first.returncode == 0, first.stderr[-3000:]
@@ -471,27 +453,11 @@ def cpu_ticks(pids: list[int]) -> int:
 
 
 @pytest.mark.slow
-def test_kill_9_of_the_trainer_during_evaluation_leaves_no_worker_and_no_traceback(tiny_pipeline, tmp_path):
+def test_kill_9_of_the_trainer_during_evaluation_leaves_no_worker_and_no_traceback(tiny_train_yaml, tmp_path):
     """Orphaned by a kill -9, an evaluation worker used to write a BrokenPipeError traceback into
     the output it shared with the trainer."""
-    root, encoders = tiny_pipeline
-    policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
     steps = 2
-    config = {
-        "dataset": str(root),
-        "task": "place_in_box",
-        "output_dir": str(tmp_path / "run"),
-        "cache_dir": str(tmp_path / "cache"),
-        "steps": steps,
-        "batch_size": 16,
-        "log_every": 1,
-        "eval_every": 100,
-        "final_eval_episodes": 20,
-        "eval_envs": 2,
-        "policy": policy,
-    }
-    path = tmp_path / "train.yaml"
-    path.write_text(yaml.safe_dump(config))
+    path = tiny_train_yaml(steps=steps, final_eval_episodes=20, eval_envs=2)
     output, log = tmp_path / "output.txt", tmp_path / "run" / "log.csv"
     with output.open("w") as out:  # what `murm train ... > output.txt 2>&1` would hold
         trainer = subprocess.Popen(

@@ -12,7 +12,6 @@ from contextlib import suppress
 from pathlib import Path
 
 import pytest
-import yaml
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from lerobot_murm import locking
@@ -161,26 +160,9 @@ def test_a_second_collection_of_one_folder_exits_at_once_and_the_first_finishes(
 
 
 @pytest.mark.slow
-def test_a_second_training_of_one_run_folder_exits_at_once_and_the_first_logs_each_step_once(tiny_pipeline, tmp_path):
+def test_a_second_training_of_one_run_folder_exits_at_once_and_the_first_logs_each_step_once(tiny_train_yaml, tmp_path):
     """Two trainers of one folder wrote every log row twice and two final evaluations."""
-    root, encoders = tiny_pipeline
-    policy = {"type": "murm", "method": "concat", "cameras": ["global", "adjacent"], "encoder_dir": str(encoders)}
-    config = {
-        "dataset": str(root),
-        "task": "place_in_box",
-        "output_dir": str(tmp_path / "run"),
-        "cache_dir": str(tmp_path / "cache"),
-        "steps": 4,
-        "batch_size": 16,
-        "log_every": 1,
-        "eval_every": 100,
-        "eval_episodes": 1,
-        "final_eval_episodes": 1,
-        "eval_envs": 1,
-        "policy": policy,
-    }
-    path = tmp_path / "train.yaml"
-    path.write_text(yaml.safe_dump(config))
+    path = tiny_train_yaml()
     train = [MURM, "train", "--config", path]
     first = subprocess.Popen(
         [str(a) for a in train],

@@ -109,10 +109,6 @@ class CameraStream:
     frame_index: np.ndarray  # (N,)
     timestamp: np.ndarray  # (N,) seconds into the episode, where video frames are looked up
 
-    @property
-    def hindsight(self) -> bool:
-        return self.goal_key is None
-
     def side(self, image_size: int) -> int:
         """The side of the square images an encoder of `image_size` sees of this stream."""
         return encoder_side(*self.size, image_size)
@@ -211,7 +207,9 @@ def decode_pngs(pngs: list[bytes], side: int | None = None) -> np.ndarray:
     PNGs twice as fast as Pillow (same pixels)."""
     decoded = [cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) for data in pngs]
     images = np.stack(decoded)[..., ::-1].copy()  # BGR -> RGB
-    return images if side is None else _fit(torch.from_numpy(images).permute(0, 3, 1, 2), side)
+    if side is None or images.shape[1:3] == (side, side):
+        return images
+    return _fit(torch.from_numpy(images).permute(0, 3, 1, 2), side)
 
 
 def _decode_video(path: Path, timestamps: list[float], tolerance_s: float, side: int) -> np.ndarray:

@@ -55,8 +55,8 @@ def write_latent_dataset(
             and np.array_equal(cache.frame_index, table["frame_index"].to_numpy())
         ):
             raise ValueError(f"the {cache.camera} latent cache does not match the rows of {dataset.root}")
-    goals = {cache.goals for cache in caches}
-    if len(goals) > 1:
+    goal_sources = {cache.goals for cache in caches}
+    if len(goal_sources) > 1:
         raise ValueError(f"{dataset.root} has goal images of some of these cameras only: encode them separately")
     added = {}
     for cache in caches:
@@ -73,7 +73,7 @@ def write_latent_dataset(
     description = {
         "source": {"repo_id": dataset.repo_id, "fingerprint": dataset_fingerprint(dataset)},
         "command": command,
-        "goals": goals.pop(),
+        "goals": goal_sources.pop(),
         "cameras": {
             cache.camera: {
                 "encoder": json.loads((Path(encoder_dir) / CONFIG_FILE).read_text()),

@@ -66,6 +66,9 @@ def distance_statistics(cache: LatentCache, episode_success: np.ndarray, samples
     below_reached = np.searchsorted(np.sort(reached), candidates, side="right") / max(len(reached), 1)
     below_random = np.searchsorted(np.sort(random), candidates, side="right") / len(random)
     best = int(np.argmax(below_reached - below_random))
+    suggested = float(candidates[best])  # the reward counts d < epsilon; J counted d <= this
+    if cache.hindsight:  # many frames encode exactly as their goal (d = 0): halfway to the next distance
+        suggested = float(candidates[best : best + 2].mean())
     return {
         "camera": cache.camera,
         "distance": "squared L2 between 720-number latents",
@@ -73,7 +76,7 @@ def distance_statistics(cache: LatentCache, episode_success: np.ndarray, samples
         "successful_final_frames": _summary(reached),
         "random_frames": _summary(random),
         QUANTILE_KEY: np.percentile(random, np.arange(101)).tolist(),
-        "suggested_epsilon": float(candidates[best]),
+        "suggested_epsilon": suggested,
         "youden_j": float(below_reached[best] - below_random[best]),
         "_reached": reached,
         "_random": random,

@@ -221,7 +221,7 @@ class MurmPolicy(PreTrainedPolicy):
         latent of a black image).
         """
         visible = self._evaluation_visibility(latents.shape[0], mask_p, mask_mode).to(latents.device)
-        if present is not None:
+        if present is not None and len(self.cameras) > 1:  # one camera is always present (observation_latents)
             present = present.to(latents.device)
             visible = torch.where((visible & present).any(-1, keepdim=True), visible & present, present)
         if len(self.cameras) > 1:

@@ -14,7 +14,9 @@ from lerobot_murm.features import goal_image_key, image_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import camera_keep_mask
 from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
+from lerobot_murm.policy.replay import replay_for_dataset
 from lerobot_murm.training.train import build_policy
+from lerobot_murm.vqvae.frames import episode_last_rows
 
 REPO = "local/place_in_box"
 
@@ -206,6 +208,16 @@ def test_a_policy_made_for_an_image_dataset_holds_its_encoded_frames_and_refuses
         policy.forward({"index": torch.tensor([0, 99])})
     saved = policy.state_dict()
     assert all(v.numel() < 1_000_000 for v in saved.values())  # the replay is not part of the checkpoint
+
+
+def test_hindsight_goals_replace_the_goal_images_by_each_episode_s_last_frame(tiny_pipeline, dataset):
+    rendered = replay_for_dataset(make_config(tiny_pipeline[1]), dataset, cache_dir=None)
+    hindsight = replay_for_dataset(make_config(tiny_pipeline[1], hindsight_goals=True), dataset, cache_dir=None)
+    last = torch.from_numpy(episode_last_rows(hindsight.episode.numpy()))
+    for k in range(len(hindsight.cameras)):
+        torch.testing.assert_close(hindsight.latents[k], rendered.latents[k])
+        torch.testing.assert_close(hindsight.goal_latents[k], rendered.latents[k][last])
+        assert not torch.equal(hindsight.goal_latents[k], rendered.goal_latents[k])
 
 
 def test_select_action_is_deterministic_and_within_the_action_box(policy):

@@ -186,6 +186,33 @@ def test_lerobot_train_learns_the_robot_s_own_actions_and_the_policy_drives_towa
     assert torch.isfinite(act()).all()
 
 
+@pytest.mark.slow
+def test_lerobot_train_on_the_recording_itself_encodes_its_video_frames_once(recorded, encoded, tmp_path):
+    """No latent dataset: the policy encodes every frame when it starts (hindsight goals, frames
+    resized as the encoders' were) while LeRobot's loader decodes the videos for nothing."""
+    run_command(
+        [
+            BIN / "lerobot-train",
+            "--policy.type=murm",
+            f"--policy.cameras=[{','.join(CAMERAS)}]",
+            f"--policy.encoder_dir={encoded[0]}",
+            "--policy.hidden_units=16",
+            "--dataset.repo_id=local/so101_own",
+            f"--dataset.root={recorded}",
+            "--dataset.video_backend=pyav",
+            "--wandb.enable=false",
+            "--batch_size=4",
+            "--num_workers=0",
+            "--steps=1",
+            "--save_freq=1",
+            f"--output_dir={tmp_path / 'run'}",
+        ],
+        tmp_path,
+    )
+    config = json.loads((tmp_path / "run/checkpoints/last/pretrained_model/config.json").read_text())
+    assert config["input_features"][image_key("laptop")]["shape"] == [3, HEIGHT, WIDTH]
+
+
 def test_frames_are_centre_cropped_to_a_square_then_area_resized_and_never_upsampled():
     images = torch.randint(0, 256, (2, 3, HEIGHT, WIDTH), dtype=torch.uint8)
     square = images[..., :, 16:112].double()  # the centre 96x96 of 96x128

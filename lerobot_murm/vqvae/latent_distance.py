@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 from lerobot_murm.checkpointing import write_atomic
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE
 from lerobot_murm.vqvae.frames import episode_last_rows
-from lerobot_murm.vqvae.latent_cache import LatentCache
+from lerobot_murm.vqvae.latent_cache import HINDSIGHT, LatentCache
 
 PERCENTILES = (5, 25, 50, 75, 95)
 QUANTILE_KEY = "random_frames_quantiles"  # percentiles 0, 1, ..., 100 of the random frames' distances
@@ -166,7 +166,10 @@ def plot_distances(stats: list[dict], path: Path) -> None:
     for ax, s in zip(axes[0], stats, strict=True):
         bins = np.linspace(0, np.percentile(np.concatenate([s["_reached"], s["_random"]]), 99), 40)
         ax.hist(s["_random"], bins=bins, alpha=0.6, density=True, label="random frames")
-        ax.hist(s["_reached"], bins=bins, alpha=0.6, density=True, label="final frames, success")
+        reached = (
+            f"last {HINDSIGHT_REACHED_SHARE:.0%} of episodes" if s["goals"] == HINDSIGHT else "final frames, success"
+        )
+        ax.hist(s["_reached"], bins=bins, alpha=0.6, density=True, label=reached)
         ax.axvline(s["suggested_epsilon"], color="k", linestyle="--", label=f"epsilon {s['suggested_epsilon']:.2f}")
         ax.set_title(f"{s['camera']} (J = {s['youden_j']:.2f})", fontsize=9)
         ax.set_xlabel("||z - z_goal||^2", fontsize=8)

@@ -36,7 +36,8 @@ COLLECT_OPTIONS = (
     "overwrite",
     "flush_every",
 )
-VQVAE_OPTIONS = ("steps", "batch_size", "seed")  # the VQVAEConfig fields `murm train-vqvae` takes as options
+# the VQVAEConfig fields `murm train-vqvae` takes as options
+VQVAE_OPTIONS = ("steps", "batch_size", "seed", "image_size", "codebook_size")
 
 
 def _collect(args: argparse.Namespace) -> None:
@@ -71,20 +72,20 @@ def _train_vqvae(args: argparse.Namespace) -> None:
 
     from lerobot_murm.checks import check_writable
     from lerobot_murm.config_args import config_arguments
-    from lerobot_murm.env.cameras import validate_camera_names
+    from lerobot_murm.features import IMAGES_PREFIX
     from lerobot_murm.vqvae import VQVAEConfig
     from lerobot_murm.vqvae.frames import dataset_location
     from lerobot_murm.vqvae.train import train_vqvae
 
-    validate_camera_names([args.camera])
     config = replace(VQVAEConfig(), **config_arguments(args, VQVAE_OPTIONS))
     repo_id, root = dataset_location(args.dataset)
-    out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{args.camera}")
+    camera = args.camera.removeprefix(IMAGES_PREFIX)  # the policy finds it as ENCODER_DIR/<camera>
+    out = Path(args.out or f"outputs/vqvae/{Path(args.dataset).name}/{camera}")
     check_writable(out)
     metrics = train_vqvae(repo_id, root, args.camera, out, config, device=args.device)
     held = metrics["heldout"]
     print(
-        f"{args.camera}: held-out PSNR {held['psnr_db']:.1f} dB (MSE {held['mse']:.5f}), codebook perplexity "
+        f"{camera}: held-out PSNR {held['psnr_db']:.1f} dB (MSE {held['mse']:.5f}), codebook perplexity "
         f"{held['perplexity']:.0f}, {held['unused_codes']} unused codes; saved to {out}"
     )
 
@@ -286,10 +287,10 @@ def build_parser() -> argparse.ArgumentParser:
     pull.add_argument("--root", required=True, help="folder to download into")
     pull.set_defaults(func=_pull)
 
-    vq = commands.add_parser("train-vqvae", help="train one camera's VQ-VAE on a collected dataset")
+    vq = commands.add_parser("train-vqvae", help="train one camera's VQ-VAE on a LeRobotDataset's camera stream")
     vq.add_argument("--dataset", required=True, help="a dataset folder or a Hub repo id")
-    vq.add_argument("--camera", required=True)
-    vq.generated_options = _vqvae_options  # --steps, --batch-size, --seed: VQVAEConfig's fields
+    vq.add_argument("--camera", required=True, help="an image or video stream: laptop or observation.images.laptop")
+    vq.generated_options = _vqvae_options  # --steps, --batch-size, --seed, ...: VQVAEConfig's fields
     vq.add_argument("--out", default=None, help="checkpoint folder (default: outputs/vqvae/DATASET/CAMERA)")
     vq.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     vq.set_defaults(func=_train_vqvae)

@@ -132,10 +132,11 @@ def test_a_full_disk_during_a_collection_is_one_line(tmp_path):
     ("change", "code", "message"),
     [
         (["--steps", "0"], 2, "steps and batch_size must be at least 1, got 0"),
-        (["--camera", "wrist"], 2, "unknown camera(s) ['wrist']"),
+        (["--image-size", "30"], 2, "image_size must be a multiple of 4"),
     ],
 )
 def test_bad_train_vqvae_arguments(tmp_path, capsys, change, code, message):
+    """Checked before the dataset is opened; a camera the dataset lacks: test_own_dataset.py."""
     argv = ["train-vqvae", "--dataset", tmp_path, "--camera", "global", "--out", tmp_path / "vq", *change]
     code_seen, line = murm_error(argv, capsys)
     assert (code_seen, message in line) == (code, True), line

@@ -14,7 +14,9 @@ from lerobot_murm.features import goal_image_key, image_key
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import camera_keep_mask
 from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
+from lerobot_murm.policy.replay import replay_for_dataset
 from lerobot_murm.training.train import build_policy
+from lerobot_murm.vqvae.frames import episode_last_rows
 
 REPO = "local/place_in_box"
 
@@ -141,10 +143,14 @@ def test_features_are_checked_against_the_encoders(tiny_pipeline):
     config.input_features = {image_key("global"): image, goal_image_key("global"): image}
     with pytest.raises(ValueError, match=r"needs observation\.images\.adjacent"):
         config.validate_features()
-    big = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 48, 48))
-    config.input_features = {k: big for c in ("global", "adjacent") for k in (image_key(c), goal_image_key(c))}
-    with pytest.raises(ValueError, match="encoder takes \\(3, 16, 16\\)"):
+    gray = PolicyFeature(type=FeatureType.VISUAL, shape=(1, 16, 16))
+    config.input_features = {k: gray for c in ("global", "adjacent") for k in (image_key(c), goal_image_key(c))}
+    with pytest.raises(ValueError, match="the encoders take RGB images"):
         config.validate_features()
+    # any size (the policy resizes as the encoders' frames were), goal images or none (hindsight goals)
+    big = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 96, 128))
+    config.input_features = {image_key(c): big for c in ("global", "adjacent")}
+    config.validate_features()
 
 
 def test_the_epsilon_defaults_to_the_suggestion_murm_encode_wrote(tiny_pipeline):
@@ -204,6 +210,16 @@ def test_a_policy_made_for_an_image_dataset_holds_its_encoded_frames_and_refuses
     assert all(v.numel() < 1_000_000 for v in saved.values())  # the replay is not part of the checkpoint
 
 
+def test_hindsight_goals_replace_the_goal_images_by_each_episode_s_last_frame(tiny_pipeline, dataset):
+    rendered = replay_for_dataset(make_config(tiny_pipeline[1]), dataset, cache_dir=None)
+    hindsight = replay_for_dataset(make_config(tiny_pipeline[1], hindsight_goals=True), dataset, cache_dir=None)
+    last = torch.from_numpy(episode_last_rows(hindsight.episode.numpy()))
+    for k in range(len(hindsight.cameras)):
+        torch.testing.assert_close(hindsight.latents[k], rendered.latents[k])
+        torch.testing.assert_close(hindsight.goal_latents[k], rendered.latents[k][last])
+        assert not torch.equal(hindsight.goal_latents[k], rendered.goal_latents[k])
+
+
 def test_select_action_is_deterministic_and_within_the_action_box(policy):
     policy.eval()
     batch = observation(policy)
@@ -219,6 +235,36 @@ def test_masking_zeroes_whole_camera_pairs_at_rate_p_and_never_all(policy):
     assert not zeroed.all(-1).any()
     assert abs(zeroed.float().mean().item() - 0.25) < 0.03  # p - p^2 per camera, with the all-dropped rule
     assert not (policy.state_from_observation(batch) == 0).all(-1).any()
+
+
+def test_a_camera_missing_from_the_observation_is_masked(policy):
+    policy.eval()
+    batch = observation(policy)
+    full = policy.state_from_observation(batch)
+    dropped = {k: v for k, v in batch.items() if k != image_key("adjacent")}
+    state = policy.state_from_observation(dropped, mask_p=0.5)  # masking never hides the camera left
+    assert (state[:, 1] == 0).all()
+    torch.testing.assert_close(state[:, 0], full[:, 0])
+    assert torch.isfinite(policy.select_action(dropped)).all()
+    with pytest.raises(ValueError, match="no image of any of the policy's cameras"):
+        policy.select_action({k: v for k, v in dropped.items() if k != image_key("global")})
+
+
+def test_a_goal_set_once_serves_observations_without_goal_images(policy):
+    policy.eval()
+    batch = observation(policy)
+    frames = {image_key(c): batch[image_key(c)] for c in policy.cameras}
+    with pytest.raises(ValueError, match="no goal for camera 'global'"):
+        policy.select_action(frames)
+    goals = {c: (batch[goal_image_key(c)][0] * 255).round().to(torch.uint8) for c in policy.cameras}
+    with_goals = frames | {goal_image_key(c): (goals[c] / 255).expand(3, -1, -1, -1) for c in policy.cameras}
+    # as a camera photographs it: H x W x 3 uint8, here at twice the encoders' size (area-resized back)
+    policy.set_goal({c: g.repeat_interleave(2, 1).repeat_interleave(2, 2).permute(1, 2, 0) for c, g in goals.items()})
+    torch.testing.assert_close(policy.select_action(frames), policy.select_action(with_goals))
+    policy.reset()  # a new episode keeps the goal
+    torch.testing.assert_close(policy.select_action(frames), policy.select_action(with_goals))
+    with pytest.raises(ValueError, match="missing \\['adjacent'\\]"):
+        policy.set_goal({"global": goals["global"]})
 
 
 def test_masking_blanks_a_single_camera_image(tiny_pipeline, dataset):

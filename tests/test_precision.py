@@ -6,6 +6,7 @@ from dataclasses import asdict
 
 import pytest
 import torch
+from lerobot.configs import FeatureType, PolicyFeature
 
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.modeling_murm import MurmPolicy
@@ -39,6 +40,7 @@ def make_policy(method: str = "separated_q", image_size: int = 48, **fields) -> 
     """A policy on the latents of 48x48 encoders (720 numbers) or smaller ones, built without any file."""
     encoders = {c: asdict(VQVAEConfig(camera=c, image_size=image_size)) for c in CAMERAS}
     config = MurmConfig(method=method, cameras=CAMERAS, encoders=encoders, epsilon=[2.0, 2.0], **fields)
+    config.output_features = {"action": PolicyFeature(type=FeatureType.ACTION, shape=(4,))}
     torch.manual_seed(0)
     return MurmPolicy(config).train()
 

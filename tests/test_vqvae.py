@@ -16,7 +16,7 @@ from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.collection.dataset import episode_successes
 from lerobot_murm.expert import PAPER_NOISE_STD
 from lerobot_murm.vqvae import VQVAE, VQVAEConfig
-from lerobot_murm.vqvae.frames import load_camera_frames, open_dataset
+from lerobot_murm.vqvae.frames import camera_stream, load_camera_frames, open_dataset
 from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_distance import distance_statistics
 from lerobot_murm.vqvae.train import train_vqvae
@@ -106,7 +106,8 @@ def test_training_writes_a_self_describing_checkpoint_with_metrics_and_figure(en
 def test_held_out_images_come_from_whole_episodes(dataset_root):
     from lerobot_murm.vqvae.train import split_episodes
 
-    frames = load_camera_frames(open_dataset(REPO, dataset_root), "global")
+    dataset = open_dataset(REPO, dataset_root)
+    frames = load_camera_frames(dataset, camera_stream(dataset, "global"), 16)
     train, held = split_episodes(frames, 0.34, seed=0)
     assert len(train) + len(held) == len(frames.images) + len(frames.goals)
     assert len(held) == 100 + 1  # one whole episode and its goal image
@@ -115,7 +116,8 @@ def test_held_out_images_come_from_whole_episodes(dataset_root):
 def test_latent_cache_matches_the_encoder_exactly_and_is_reused(dataset_root, encoder_dir, tmp_path):
     cache = build_latent_cache(REPO, dataset_root, encoder_dir, tmp_path)
     model = VQVAE.load(encoder_dir)
-    frames = load_camera_frames(open_dataset(REPO, dataset_root), "global")
+    dataset = open_dataset(REPO, dataset_root)
+    frames = load_camera_frames(dataset, camera_stream(dataset, "global"), model.config.image_size)
     expected = model.encode(torch.from_numpy(frames.images[:50])).numpy()
     np.testing.assert_array_equal(cache.latents(slice(0, 50)), expected)
     np.testing.assert_array_equal(cache.goal_latents(), model.encode(torch.from_numpy(frames.goals)).numpy())

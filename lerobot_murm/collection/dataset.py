@@ -156,8 +156,12 @@ def save_staged_episode(dataset: LeRobotDataset, episode: StagedEpisode, task_de
 
 
 def episode_successes(repo_id: str, root: Path) -> np.ndarray:
-    """Per-episode success (at any step) read back from a finished dataset."""
+    """Per-episode success (at any step) read back from a finished dataset. A dataset without
+    a success column (a robot's own recording) counts every episode as successful: each reached
+    its own last frame, the goal it has without goal images (hindsight)."""
     dataset = LeRobotDataset(repo_id, root=root, video_backend="pyav")
+    if "next.success" not in dataset.meta.features:
+        return np.ones(dataset.meta.total_episodes, bool)
     columns = dataset.hf_dataset.with_format("numpy").select_columns(["episode_index", "next.success"])[:]
     successes = np.zeros(dataset.meta.total_episodes, bool)
     np.logical_or.at(successes, columns["episode_index"], columns["next.success"].reshape(-1))

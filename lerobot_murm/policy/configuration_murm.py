@@ -94,6 +94,9 @@ class MurmConfig(PreTrainedConfig):
     standardize_latents: bool = True
     latent_std_floor: float = 0.05  # standardised inputs: std of a latent feature at least this
     her_ratio: float = 0.15  # future hindsight relabelling
+    # each episode's goal is its own last frame even where the dataset has goal images (datasets
+    # without goal images, a robot's own recordings, always have these hindsight goals)
+    hindsight_goals: bool = False
     dropout_p: float = 0.5  # each camera pair zeroed with this probability in training
     # zero camera pairs in training; None: only for `dropout`. True with `separated_q`
     # combines both MURM methods (the paper leaves open whether its separated-Q runs did)
@@ -123,9 +126,11 @@ class MurmConfig(PreTrainedConfig):
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
             "VISUAL": NormalizationMode.IDENTITY,  # the encoders take images in [0, 1]
-            "STATE": NormalizationMode.IDENTITY,
+            "STATE": NormalizationMode.IDENTITY,  # the policy sees cameras only
             "ENV": NormalizationMode.IDENTITY,
-            "ACTION": NormalizationMode.IDENTITY,  # actions are already in [-1, 1]
+            # to [-1, 1], the policy's action box, by the dataset's range (any robot's joints); the
+            # simulator's actions already fill [-1, 1], and `murm train` saves no statistics
+            "ACTION": NormalizationMode.MIN_MAX,
         }
     )
     push_to_hub: bool = False
@@ -217,7 +222,10 @@ class MurmConfig(PreTrainedConfig):
 
     @property
     def action_dim(self) -> int:
-        return self.output_features[ACTION].shape[0] if self.output_features else 4
+        """The dataset's own action size (the Panda's 4, an SO-101's 6, ...)."""
+        if ACTION not in self.output_features:
+            raise ValueError(f"the policy's output_features have no {ACTION!r}: set them from the dataset's features")
+        return self.output_features[ACTION].shape[0]
 
     # --- LeRobot's PreTrainedConfig interface -------------------------------------------
     @property
@@ -246,7 +254,9 @@ class MurmConfig(PreTrainedConfig):
         return None
 
     def validate_features(self) -> None:
-        """The data has each camera's images and goal images, or their codes (a latent dataset)."""
+        """The data has each camera's codes and goal codes (a latent dataset), or its RGB images of
+        any size (the policy resizes them as the encoder's frames were), with goal images or
+        without (hindsight goals in training, `MurmPolicy.set_goal` in deployment)."""
         if latent_cameras(self.input_features):
             for camera in self.cameras:
                 encoder = self.encoder_config(camera)
@@ -265,11 +275,8 @@ class MurmConfig(PreTrainedConfig):
             return
         visual = {k: ft for k, ft in self.input_features.items() if ft.type is FeatureType.VISUAL}
         for camera in self.cameras:
-            size = self.encoder_config(camera).image_size
             for key in (image_key(camera), goal_image_key(camera)):
-                if key not in visual:
-                    raise ValueError(f"the policy needs {key}; the data has {sorted(visual)}")
-                if tuple(visual[key].shape) != (3, size, size):
-                    raise ValueError(
-                        f"{key} has shape {tuple(visual[key].shape)}; the {camera} encoder takes (3, {size}, {size})"
-                    )
+                if key in visual and visual[key].shape[0] != 3:
+                    raise ValueError(f"{key} has shape {tuple(visual[key].shape)}; the encoders take RGB images")
+            if image_key(camera) not in visual:
+                raise ValueError(f"the policy needs {image_key(camera)}; the data has {sorted(visual)}")

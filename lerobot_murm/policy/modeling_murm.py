@@ -7,6 +7,8 @@ construction, holds the latents of every row in memory (read from a latent datas
 codes, or encoded once from an image dataset), and `forward` turns the rows LeRobot's
 sampler chose (the batch's `index`) into transitions: successor, hindsight goal and
 reward come from the sampler `murm train` uses, not from the frames in the batch.
+Under `lerobot-train` the actions are the batch's own, as LeRobot's preprocessor normalised
+them with the dataset's statistics (any robot's action, mapped to the policy's [-1, 1]).
 Either way the loss is IQL's three losses summed: each network's loss reaches only its
 own parameters (the others are detached), so one Adam with a parameter group per network
 is three Adams, and LeRobot's single optimizer step trains all three.
@@ -17,11 +19,13 @@ from __future__ import annotations
 import copy
 from typing import Any
 
+import numpy as np
 import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.pretrained import PreTrainedPolicy
 from torch import Tensor, nn
 
-from lerobot_murm.features import goal_image_key, image_key
+from lerobot_murm.features import ACTION, goal_image_key, image_key
 from lerobot_murm.policy import iql
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.iql import DoubleQ, GaussianPolicy, camera_keep_mask, mlp, polyak_update
@@ -38,6 +42,7 @@ from lerobot_murm.policy.replay import (
     replay_for_dataset,
 )
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
+from lerobot_murm.vqvae.resize import fit_images
 
 LOGGED = ("value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight")
 
@@ -79,6 +84,8 @@ class MurmPolicy(PreTrainedPolicy):
             state_dim, action_dim, config.shared_width, config.policy_layers, config.log_std_min, config.log_std_max
         )
         self.mask_generator = torch.Generator().manual_seed(config.eval_mask_seed)
+        # each camera's goal latent from `set_goal`, for observations without goal images; not saved
+        self.goal: dict[str, Tensor] = {}
         # the training data's latents, for lerobot-train; a plain attribute: never saved or synced
         self.replay: LatentReplay | None = None
         if dataset_meta is not None:  # a fresh policy for lerobot-train: encoders, replay and statistics
@@ -130,7 +137,29 @@ class MurmPolicy(PreTrainedPolicy):
         ]
 
     def reset(self) -> None:
-        """Nothing to clear: the policy acts on the current observation and goal only."""
+        """Nothing to clear: the policy acts on the current observation and goal only (the goal
+        `set_goal` stored stays: a goal photographed once serves every episode after it)."""
+
+    # --- goals -----------------------------------------------------------------------------
+    @torch.no_grad()
+    def set_goal(self, images: dict[str, Tensor | np.ndarray]) -> None:
+        """The goal `select_action` drives towards when an observation carries no goal images (a
+        robot's cameras give none): one image per camera, as a camera gives it (H x W x 3 uint8)
+        or as LeRobot's processors do (3 x H x W floats in [0, 1]), any size (resized as the
+        encoder's frames were). Observations with goal images (the simulator's) use their own."""
+        missing = [c for c in self.cameras if c not in images]
+        if missing:
+            raise ValueError(f"set_goal needs an image of every camera {self.cameras}; missing {missing}")
+        device = self.epsilon.device
+        self.goal = {c: self.encode(c, as_image(images[c]).to(device)) for c in self.cameras}
+
+    def set_goal_from_dataset(self, dataset: LeRobotDataset, index: int) -> None:
+        """Frame `index` of an image dataset as the goal (an episode's last frame: where it ended)."""
+        missing = [image_key(c) for c in self.cameras if image_key(c) not in dataset.meta.features]
+        if missing:
+            raise ValueError(f"the dataset at {dataset.root} has no images {missing} to take a goal from")
+        frame = dataset[index]
+        self.set_goal({c: frame[image_key(c)] for c in self.cameras})
 
     def update(self) -> None:
         """Called by the trainers after each optimizer step: Polyak-average the target critic."""
@@ -139,33 +168,62 @@ class MurmPolicy(PreTrainedPolicy):
     # --- observations -> latent states ---------------------------------------------------
     @torch.no_grad()
     def encode(self, camera: str, images: Tensor) -> Tensor:
-        """(..., 3, H, W) images in [0, 1] -> (..., latent_dim) latents."""
+        """(..., 3, H, W) images in [0, 1] of any size (brought to the encoder's by the rule its
+        training frames followed, `resize.fit_images`) -> (..., latent_dim) latents."""
+        images = fit_images(images, self.encoders[camera].config.image_size)
         flat = images.reshape(-1, *images.shape[-3:])
         return self.encoders[camera].encode(flat).view(*images.shape[:-3], -1)
 
     def state_from_observation(self, batch: dict[str, Tensor], mask_p: float = 0.0, mask_mode: str = "paper") -> Tensor:
         """(B, cameras, 2 * latent) standardised state of one observation, cameras masked
         (Table 4) by `mask_mode`: "paper", each camera with probability mask_p; "authors",
-        on a third of the steps one random camera (the authors' public code)."""
-        return self.masked_state(self.observation_latents(batch), mask_p, mask_mode)
+        on a third of the steps one random camera (the authors' public code). A camera whose
+        image the observation lacks (one that dropped out) is masked too."""
+        present = torch.tensor([image_key(c) in batch for c in self.cameras])
+        return self.masked_state(self.observation_latents(batch), mask_p, mask_mode, present)
 
     def observation_latents(self, batch: dict[str, Tensor]) -> Tensor:
         """(B, cameras, 2 * latent) raw (z, zg) latents of an observation: the encoders' work,
-        which the seeds of a stack (one set of encoders) do once for all their episodes."""
-        pairs = [
-            torch.cat([self.encode(c, batch[image_key(c)]), self.encode(c, batch[goal_image_key(c)])], dim=-1)
-            for c in self.cameras
-        ]
+        which the seeds of a stack (one set of encoders) do once for all their episodes. A
+        camera missing from the observation has z = 0 (`masked_state` hides it)."""
+        frames = [batch[image_key(c)] for c in self.cameras if image_key(c) in batch]
+        if not frames:
+            raise ValueError(f"the observation has no image of any of the policy's cameras {self.cameras}")
+        rows, device = frames[0].shape[:-3], frames[0].device
+        pairs = []
+        for c in self.cameras:
+            goal = self.goal_latents(c, batch, rows, device)
+            z = self.encode(c, batch[image_key(c)]) if image_key(c) in batch else torch.zeros_like(goal)
+            pairs.append(torch.cat([z, goal], dim=-1))
         return torch.stack(pairs, dim=1)
 
-    def masked_state(self, latents: Tensor, mask_p: float = 0.0, mask_mode: str = "paper") -> Tensor:
-        """The standardised state of `observation_latents`, cameras masked by `mask_mode`.
+    def goal_latents(self, camera: str, batch: dict[str, Tensor], rows: torch.Size, device: torch.device) -> Tensor:
+        """(*rows, latent) goal latents of `camera`: the observation's goal images where it has
+        them, else the goal `set_goal` stored."""
+        if goal_image_key(camera) in batch:
+            return self.encode(camera, batch[goal_image_key(camera)])
+        if camera not in self.goal:
+            raise ValueError(
+                f"no goal for camera {camera!r}: the observation has no {goal_image_key(camera)}; "
+                "give the policy a goal with set_goal (or set_goal_from_dataset) first"
+            )
+        return self.goal[camera].to(device).expand(*rows, -1)
+
+    def masked_state(
+        self, latents: Tensor, mask_p: float = 0.0, mask_mode: str = "paper", present: Tensor | None = None
+    ) -> Tensor:
+        """The standardised state of `observation_latents`, cameras masked by `mask_mode` and,
+        where `present` (cameras,) is False, for want of an image.
 
         Several cameras: a masked camera's (z, zg) pair is zeroed as in dropout training, and
-        a step that would mask every camera masks none (the paper's rule). One camera: its
-        image goes black, so the policy sees a blank view (the latent of a black image).
+        a step that would mask every camera masks none (the paper's rule; of the cameras
+        present). One camera: its image goes black, so the policy sees a blank view (the
+        latent of a black image).
         """
         visible = self._evaluation_visibility(latents.shape[0], mask_p, mask_mode).to(latents.device)
+        if present is not None and len(self.cameras) > 1:  # one camera is always present (observation_latents)
+            present = present.to(latents.device)
+            visible = torch.where((visible & present).any(-1, keepdim=True), visible & present, present)
         if len(self.cameras) > 1:
             return self.normalize(latents) * visible.unsqueeze(-1)
         camera, dim = self.cameras[0], self.config.latent_dim
@@ -200,7 +258,10 @@ class MurmPolicy(PreTrainedPolicy):
     # --- learning --------------------------------------------------------------------------
     def forward(self, batch: dict[str, Tensor], reduction: str = "mean") -> tuple[Tensor, dict[str, float]]:
         """IQL's loss on a batch of transitions (`murm train`) or of LeRobot dataset rows (`lerobot-train`)."""
-        transition = batch if TRANSITION_STATE in batch else self.transitions_of_rows(batch["index"])
+        if TRANSITION_STATE in batch:
+            transition = batch
+        else:  # dataset rows (lerobot-train), with their actions as LeRobot's preprocessor normalised them
+            transition = self.transitions_of_rows(batch["index"]) | {TRANSITION_ACTION: batch[ACTION]}
         device = transition[TRANSITION_STATE].device
         with matmul_precision(resolve_precision(self.config.precision, device), device):
             loss, logged = self.iql_loss(transition)
@@ -248,3 +309,14 @@ class MurmPolicy(PreTrainedPolicy):
             dim=-1,
         ).detach()
         return loss, logged
+
+
+def as_image(image: Tensor | np.ndarray) -> Tensor:
+    """A camera's image as (3, H, W) floats in [0, 1], from H x W x 3 uint8 (a camera's frame) or
+    3 x H x W (LeRobot's processed frames, or a dataset's)."""
+    image = torch.as_tensor(image)
+    if image.ndim != 3 or 3 not in (image.shape[0], image.shape[-1]):
+        raise ValueError(f"a goal image is H x W x 3 or 3 x H x W, got shape {tuple(image.shape)}")
+    if image.shape[0] != 3:
+        image = image.permute(2, 0, 1)
+    return image.float() / 255 if image.dtype == torch.uint8 else image.float()

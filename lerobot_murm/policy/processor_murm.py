@@ -1,8 +1,10 @@
 """Pre- and post-processing of the MURM policy: LeRobot's defaults.
 
-Images stay in [0, 1] (the encoders normalise them), actions are already in [-1, 1]:
-every feature maps to IDENTITY, so the pipeline only renames, batches and moves to the
-device. Keeping the default steps lets `lerobot-eval` override them by name.
+Images stay in [0, 1] (the encoders normalise them and resize them themselves); actions map
+to the policy's [-1, 1] by the dataset's min and max (any robot's action: an SO-101's joint
+positions in degrees, the simulator's end-effector steps already in [-1, 1]) and back when
+the policy acts (`MurmConfig.normalization_mapping`). Keeping the default steps lets
+`lerobot-eval` override them by name.
 """
 
 from __future__ import annotations

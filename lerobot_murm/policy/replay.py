@@ -179,7 +179,7 @@ def replay_for_dataset(
 
     A latent dataset (`murm encode --to-dataset`) gives its codes; a dataset of images is
     encoded once with the frozen encoders (through the latent cache in `cache_dir`, or in
-    memory without one).
+    memory without one). With `hindsight_goals` each episode's goal is its last frame.
     """
     config.load_encoder_settings()
     encoder_dir = Path(config.encoder_dir or "")
@@ -191,6 +191,8 @@ def replay_for_dataset(
             build_latent_cache(dataset.repo_id, dataset.root, encoder_dir / c, cache_dir, str(device))
             for c in config.cameras
         ]
+    if config.hindsight_goals:
+        caches = [cache.with_hindsight_goals() for cache in caches]
     actions = dataset.hf_dataset.with_format("arrow").select_columns([features.ACTION])[:][features.ACTION]
     actions = np.array(actions.combine_chunks().flatten(), np.float32).reshape(len(dataset), -1)
     return LatentReplay(

@@ -16,6 +16,7 @@ from lerobot_murm.env.cameras import CAMERAS, EndEffectorCamera
 from lerobot_murm.env.murm_env import CONTROL_FPS, EPISODE_STEPS, TASK_DESCRIPTIONS
 from lerobot_murm.features import goal_image_key, image_key, latent_goal_key, latent_key
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
+from lerobot_murm.vqvae.latent_cache import HINDSIGHT
 
 DEMONSTRATIONS_TEMPLATE = "murm_demonstrations.md"
 LATENTS_TEMPLATE = "murm_latents.md"
@@ -69,12 +70,13 @@ def render_latent_card(description: dict, episodes: int, repo_id: str) -> str:
     cameras = description["cameras"]
     source = description["source"]["repo_id"]
     grid = VQVAEConfig(**next(iter(cameras.values()))["encoder"]).grid_size
+    goal = "its episode's last frame (hindsight goal)" if description.get("goals") == HINDSIGHT else "goal image"
     return card_template(LATENTS_TEMPLATE).substitute(
         source=source,
         episodes=episodes,
         grid=grid,
         camera_rows="\n".join(
-            f"| `{latent_key(c)}`, `{latent_goal_key(c)}` | codebook indices of the {c} frame and goal image, packed |"
+            f"| `{latent_key(c)}`, `{latent_goal_key(c)}` | codebook indices of the {c} frame and {goal}, packed |"
             for c in cameras
         ),
         encoder_rows="\n".join(f"| {c} | `{info['encoder_fingerprint']}` |" for c, info in cameras.items()),

@@ -6,6 +6,8 @@ import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from lerobot_murm.vqvae.resize import RESIZE_RULE
+
 LATENT_DISTANCE_FILE = "latent_distance.json"  # beside a checkpoint: `murm encode`'s epsilon statistics
 
 
@@ -14,6 +16,8 @@ class VQVAEConfig:
     """Architecture and training settings; saved beside the weights so a checkpoint describes itself."""
 
     camera: str = "global"
+    # the input's side in pixels: frames of another size are centre-cropped to a square and
+    # area-resized to it, or to the square's side where that is smaller (resize.py)
     image_size: int = 48
     hidden_channels: int = 64  # after the second strided convolution
     residual_channels: int = 32
@@ -30,6 +34,9 @@ class VQVAEConfig:
     holdout_fraction: float = 0.05  # whole episodes kept out for validation
     seed: int = 0  # initialisation, batches and the held-out split
     dataset: dict = field(default_factory=dict)  # what it was trained on (repo id, root, fingerprint)
+    source_key: str | None = None  # the dataset stream it was trained on (None: an encoder older than the record)
+    source_size: list[int] | None = None  # that stream's frames, [height, width]
+    resize: str = RESIZE_RULE  # how those frames reach image_size (resize.py)
 
     def __post_init__(self) -> None:
         if self.steps < 1 or self.batch_size < 1:
@@ -40,6 +47,10 @@ class VQVAEConfig:
             raise ValueError(f"holdout_fraction must be in [0, 1), got {self.holdout_fraction}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.image_size < 4 or self.image_size % 4:
+            raise ValueError(f"image_size must be a multiple of 4 (two stride-2 convolutions), got {self.image_size}")
+        if self.resize != RESIZE_RULE:
+            raise ValueError(f"unknown resize {self.resize!r}; the one rule is {RESIZE_RULE!r}")
 
     @property
     def grid_size(self) -> int:

@@ -1,5 +1,9 @@
 """The latent cache the RL trainer reads: every frame and goal image of a camera, encoded once.
 
+A camera without a goal stream has hindsight goals: each episode's goal is the codes of its
+own last frame (every episode reached its last frame), so a robot's own recordings, which
+have no goal images, train a goal-conditioned policy as well.
+
 It stores codebook indices (12x12 uint16 per image) and the codebook, so that
 `latents()` returns exactly the vectors the frozen encoder produces (a table lookup,
 bit-identical) in a tenth of the space. A cache file is named by the dataset's and
@@ -10,7 +14,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,10 +22,18 @@ import torch
 from tqdm import tqdm
 
 from lerobot_murm.vqvae.encoder_files import encoder_fingerprint
-from lerobot_murm.vqvae.frames import dataset_fingerprint, decode_pngs, open_dataset, read_camera_pngs
+from lerobot_murm.vqvae.frames import (
+    camera_stream,
+    dataset_fingerprint,
+    decoded_frames,
+    decoded_goals,
+    episode_last_rows,
+    open_dataset,
+)
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 ENCODE_BATCH = 1024
+HINDSIGHT, RENDERED = "hindsight", "rendered"  # where goals come from: episodes' last frames, or goal images
 
 
 @dataclass
@@ -32,6 +44,15 @@ class LatentCache:
     codebook: np.ndarray  # (K, D) float32
     episode_index: np.ndarray  # (N,)
     frame_index: np.ndarray  # (N,)
+    hindsight: bool = False  # the goals are each episode's last frame, not goal images
+
+    @property
+    def goals(self) -> str:
+        return HINDSIGHT if self.hindsight else RENDERED
+
+    def with_hindsight_goals(self) -> LatentCache:
+        """The same frames with each episode's last frame as its goal."""
+        return replace(self, goal_indices=self.indices[episode_last_rows(self.episode_index)], hindsight=True)
 
     def latents(self, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         """(n, D*g*g) float32 latents of the frames `rows`, laid out as the encoder's output."""
@@ -79,28 +100,37 @@ def build_latent_cache(
     path = cache_dir and cache_path(cache_dir, camera, dataset_fingerprint(dataset), encoder_fingerprint(encoder_dir))
     if path and path.exists():
         with np.load(path) as data:
-            return LatentCache(camera, **{k: data[k] for k in data.files})
-    pngs = read_camera_pngs(dataset, camera)
-    goals = decode_pngs(pngs.goals)
-    if goals.shape[1] != model.config.image_size:
+            stored = {k: data[k] for k in data.files}
+        return LatentCache(camera, **stored | {"hindsight": bool(stored.get("hindsight", False))})
+    stream = camera_stream(dataset, camera)
+    trained_on = tuple(model.config.source_size or (model.config.image_size, model.config.image_size))
+    if stream.size != trained_on:
         raise ValueError(
-            f"the {camera} VQ-VAE in {encoder_dir} was trained on {model.config.image_size}x"
-            f"{model.config.image_size} images; the dataset has {goals.shape[1]}x{goals.shape[2]}"
+            f"the {camera} VQ-VAE in {encoder_dir} was trained on {trained_on[0]}x{trained_on[1]} frames; "
+            f"the dataset's {stream.key} has {stream.size[0]}x{stream.size[1]}"
         )
-    device = torch.device(device)
+    device, side = torch.device(device), model.config.image_size
+    frames = decoded_frames(dataset, stream, side)
+    indices = encode_images(model, frames, len(stream.episode_index), device, desc=f"encode {camera}")
+    goals = decoded_goals(dataset, stream, side)
     cache = LatentCache(
         camera=camera,
-        indices=encode_images(model, pngs.decoded_frames(), len(pngs.frames), device, desc=f"encode {camera}"),
-        goal_indices=encode_images(model, [goals], len(goals), device),
+        indices=indices,
+        goal_indices=(
+            indices[episode_last_rows(stream.episode_index)]
+            if goals is None
+            else encode_images(model, [goals], len(goals), device)
+        ),
         codebook=model.quantizer.codebook.detach().cpu().numpy().astype(np.float32),
-        episode_index=pngs.episode_index,
-        frame_index=pngs.frame_index,
+        episode_index=stream.episode_index,
+        frame_index=stream.frame_index,
+        hindsight=goals is None,
     )
     if path is None:
         return cache
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-    fields = ("indices", "goal_indices", "codebook", "episode_index", "frame_index")
+    fields = ("indices", "goal_indices", "codebook", "episode_index", "frame_index", "hindsight")
     np.savez(tmp, **{k: getattr(cache, k) for k in fields})
     tmp.replace(path)  # atomic: an interrupted build leaves no half cache
     return cache

@@ -4,13 +4,15 @@ A latent dataset is an ordinary LeRobotDataset (v3): the source's actions, rewar
 state and episodes (not the privileged object/goal state, which no policy may see), and per
 chosen camera `observation.latent.<camera>` and
 `observation.latent.<camera>_goal`, the codebook indices of the frame and of the episode's
-goal image (grid x grid row-major), packed several to an int64 (`code_packing`), with no
+goal image (grid x grid row-major; with hindsight goals, a dataset without goal images, the
+codes of the episode's last frame), packed several to an int64 (`code_packing`), with no
 image streams. Indices rather than the 720 floats they stand for: a latent is a lookup in
 the encoder's codebook (bit-identical to encoding the image), and the files are 10x
 smaller; packed, because LeRobot's data loader turns every number of a row into Python
 objects one row at a time, and fewer numbers read faster (BENCHMARKS.md). The codebooks, the
-encoders' fingerprints and the source dataset are in `meta/murm_latents.json`; a policy
-refuses codes made by other encoders than its own.
+encoders' fingerprints, the source dataset and where the goals come from ("goals":
+"rendered" goal images or "hindsight") are in `meta/murm_latents.json`; a policy refuses
+codes made by other encoders than its own.
 
 It is written with LeRobot's own `dataset_tools.modify_features` (one pass: add the code
 columns, drop the images) from the latent caches `murm encode` builds anyway.
@@ -30,7 +32,7 @@ from lerobot_murm.vqvae.code_packing import code_bits, codes_per_number, pack_co
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 from lerobot_murm.vqvae.encoder_files import CONFIG_FILE, encoder_fingerprint
 from lerobot_murm.vqvae.frames import dataset_fingerprint
-from lerobot_murm.vqvae.latent_cache import LatentCache
+from lerobot_murm.vqvae.latent_cache import HINDSIGHT, LatentCache
 
 LATENTS_FILE = "meta/murm_latents.json"
 
@@ -53,6 +55,9 @@ def write_latent_dataset(
             and np.array_equal(cache.frame_index, table["frame_index"].to_numpy())
         ):
             raise ValueError(f"the {cache.camera} latent cache does not match the rows of {dataset.root}")
+    goal_sources = {cache.goals for cache in caches}
+    if len(goal_sources) > 1:
+        raise ValueError(f"{dataset.root} has goal images of some of these cameras only: encode them separately")
     added = {}
     for cache in caches:
         size = len(cache.codebook)
@@ -68,6 +73,7 @@ def write_latent_dataset(
     description = {
         "source": {"repo_id": dataset.repo_id, "fingerprint": dataset_fingerprint(dataset)},
         "command": command,
+        "goals": goal_sources.pop(),
         "cameras": {
             cache.camera: {
                 "encoder": json.loads((Path(encoder_dir) / CONFIG_FILE).read_text()),
@@ -90,7 +96,8 @@ def read_latent_caches(
 
     With `encoder_fingerprints`, codes made by other encoders than these are refused.
     """
-    description = json.loads((Path(dataset.root) / LATENTS_FILE).read_text())["cameras"]
+    written = json.loads((Path(dataset.root) / LATENTS_FILE).read_text())
+    description = written["cameras"]
     missing = [c for c in cameras if c not in description]
     if missing:
         raise ValueError(
@@ -119,6 +126,7 @@ def read_latent_caches(
                 codebook=codebook,
                 episode_index=episode_index,
                 frame_index=frame_index,
+                hindsight=written.get("goals") == HINDSIGHT,  # absent: written before hindsight goals
             )
         )
     return caches

@@ -6,6 +6,11 @@ successful episodes (goal reached) from random frames (mostly not reached): we
 report both distributions and suggest the threshold that maximises Youden's J =
 P(final-success frame below) - P(random frame below).
 
+With hindsight goals (a dataset without goal images: each episode's goal is its last
+frame) the final frames sit at distance 0 from their goals by construction, so the frames
+just before them, the last `HINDSIGHT_REACHED_SHARE` of each episode, stand for "goal
+reached" instead.
+
 The paper's epsilons (Table 2: 0.1, 1, 2, 3, 5) are squared distances in its own
 encoders' latent scale, which it does not publish, so they cannot be used on ours as
 they stand. `paper_epsilon_on_our_scale` maps them (see its docstring), and
@@ -23,11 +28,13 @@ from matplotlib.figure import Figure
 
 from lerobot_murm.checkpointing import write_atomic
 from lerobot_murm.vqvae.configuration_vqvae import LATENT_DISTANCE_FILE
-from lerobot_murm.vqvae.latent_cache import LatentCache
+from lerobot_murm.vqvae.frames import episode_last_rows
+from lerobot_murm.vqvae.latent_cache import HINDSIGHT, LatentCache
 
 PERCENTILES = (5, 25, 50, 75, 95)
 QUANTILE_KEY = "random_frames_quantiles"  # percentiles 0, 1, ..., 100 of the random frames' distances
 PAPER_CHOSEN_EPSILON = 2.0  # paper 5.1: the best success in Table 2; the authors' code's default too
+HINDSIGHT_REACHED_SHARE = 0.05  # hindsight goals: each episode's last 5 % of frames (at least one) reached its goal
 
 
 def goal_distances(cache: LatentCache, rows: np.ndarray) -> np.ndarray:
@@ -38,24 +45,38 @@ def goal_distances(cache: LatentCache, rows: np.ndarray) -> np.ndarray:
     return np.square(diff).sum(axis=1)
 
 
+def reached_rows(cache: LatentCache, episode_success: np.ndarray) -> np.ndarray:
+    """The frames that reached their goal: the last frames of successful episodes, or with
+    hindsight goals (every episode succeeds at its own last frame) the frames just before it."""
+    last_rows = episode_last_rows(cache.episode_index)
+    if not cache.hindsight:
+        return last_rows[episode_success[cache.episode_index[last_rows]]]
+    first_rows = np.append(0, last_rows[:-1] + 1)
+    lengths = last_rows - first_rows + 1
+    before = np.maximum(1, np.round(HINDSIGHT_REACHED_SHARE * lengths).astype(int))
+    return np.concatenate([np.arange(last - n, last) for last, n in zip(last_rows, before, strict=True)])
+
+
 def distance_statistics(cache: LatentCache, episode_success: np.ndarray, samples: int = 5000, seed: int = 0) -> dict:
-    last_rows = np.flatnonzero(np.append(cache.episode_index[1:] != cache.episode_index[:-1], True))
-    successful_last = last_rows[episode_success[cache.episode_index[last_rows]]]
     rows = len(cache.indices)
     random_rows = np.random.default_rng(seed).choice(rows, size=min(samples, rows), replace=False)
-    reached = goal_distances(cache, successful_last)
+    reached = goal_distances(cache, reached_rows(cache, episode_success))
     random = goal_distances(cache, random_rows)
     candidates = np.unique(np.concatenate([reached, random]))
     below_reached = np.searchsorted(np.sort(reached), candidates, side="right") / max(len(reached), 1)
     below_random = np.searchsorted(np.sort(random), candidates, side="right") / len(random)
     best = int(np.argmax(below_reached - below_random))
+    suggested = float(candidates[best])  # the reward counts d < epsilon; J counted d <= this
+    if cache.hindsight:  # many frames encode exactly as their goal (d = 0): halfway to the next distance
+        suggested = float(candidates[best : best + 2].mean())
     return {
         "camera": cache.camera,
         "distance": "squared L2 between 720-number latents",
+        "goals": cache.goals,
         "successful_final_frames": _summary(reached),
         "random_frames": _summary(random),
         QUANTILE_KEY: np.percentile(random, np.arange(101)).tolist(),
-        "suggested_epsilon": float(candidates[best]),
+        "suggested_epsilon": suggested,
         "youden_j": float(below_reached[best] - below_random[best]),
         "_reached": reached,
         "_random": random,
@@ -145,7 +166,10 @@ def plot_distances(stats: list[dict], path: Path) -> None:
     for ax, s in zip(axes[0], stats, strict=True):
         bins = np.linspace(0, np.percentile(np.concatenate([s["_reached"], s["_random"]]), 99), 40)
         ax.hist(s["_random"], bins=bins, alpha=0.6, density=True, label="random frames")
-        ax.hist(s["_reached"], bins=bins, alpha=0.6, density=True, label="final frames, success")
+        reached = (
+            f"last {HINDSIGHT_REACHED_SHARE:.0%} of episodes" if s["goals"] == HINDSIGHT else "final frames, success"
+        )
+        ax.hist(s["_reached"], bins=bins, alpha=0.6, density=True, label=reached)
         ax.axvline(s["suggested_epsilon"], color="k", linestyle="--", label=f"epsilon {s['suggested_epsilon']:.2f}")
         ax.set_title(f"{s['camera']} (J = {s['youden_j']:.2f})", fontsize=9)
         ax.set_xlabel("||z - z_goal||^2", fontsize=8)

@@ -1,4 +1,5 @@
-"""`murm train-vqvae`: fit one camera's VQ-VAE on its frames and goal images.
+"""`murm train-vqvae`: fit one camera's VQ-VAE on its frames and goal images (any camera
+stream of a LeRobotDataset, brought to the encoder's side by `resize.py`).
 
 Whole episodes are held out for validation. The checkpoint folder gets the weights and
 config (safetensors + JSON), `metrics.json` (held-out MSE and PSNR, codebook usage,
@@ -22,7 +23,13 @@ from lerobot_murm.locking import exclusive
 from lerobot_murm.training_loop import TrainingInterrupted, TrainingLoop
 from lerobot_murm.vqvae.configuration_vqvae import VQVAEConfig
 from lerobot_murm.vqvae.encoder_files import METRICS_FILE
-from lerobot_murm.vqvae.frames import CameraFrames, dataset_fingerprint, load_camera_frames, open_dataset
+from lerobot_murm.vqvae.frames import (
+    CameraFrames,
+    camera_stream,
+    dataset_fingerprint,
+    load_camera_frames,
+    open_dataset,
+)
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 
 LOG_EVERY = 50
@@ -155,12 +162,17 @@ def _train_vqvae(
 ) -> dict:
     device = resolve_device(device)
     dataset = open_dataset(repo_id, root)
-    frames = load_camera_frames(dataset, camera)
+    stream = camera_stream(dataset, camera)
+    config = config or VQVAEConfig()
+    side = stream.side(config.image_size)
+    frames = load_camera_frames(dataset, stream, side)
     config = replace(
-        config or VQVAEConfig(),
-        camera=camera,
-        image_size=int(frames.images.shape[1]),
+        config,
+        camera=stream.camera,
+        image_size=side,
         dataset={"repo_id": repo_id, "root": str(dataset.root), "fingerprint": dataset_fingerprint(dataset)},
+        source_key=stream.key,
+        source_size=list(stream.size),
     )
     train_images, holdout = split_episodes(frames, config.holdout_fraction, config.seed)
     torch.manual_seed(config.seed)
@@ -182,10 +194,10 @@ def _train_vqvae(
             rng.bit_generator.state = state["rng"]
             torch.set_rng_state(state["torch_rng"])
             done, earlier_s = state["step"], state["elapsed_s"]
-            print(f"vq-vae {camera}: resuming from step {done} ({state_path})")
+            print(f"vq-vae {config.camera}: resuming from step {done} ({state_path})")
         else:
-            print(f"vq-vae {camera}: {state_path} is from other settings or data; starting afresh")
-    loop = TrainingLoop(config.steps, start=done, earlier_s=earlier_s, desc=f"vq-vae {camera}")
+            print(f"vq-vae {config.camera}: {state_path} is from other settings or data; starting afresh")
+    loop = TrainingLoop(config.steps, start=done, earlier_s=earlier_s, desc=f"vq-vae {config.camera}")
     with loop:
         while loop.running():
             batch = torch.from_numpy(train_images[rng.integers(0, len(train_images), config.batch_size)]).to(device)
@@ -206,7 +218,7 @@ def _train_vqvae(
 
     model.save(out_dir)
     metrics = {
-        "camera": camera,
+        "camera": config.camera,
         "steps": loop.step,
         "interrupted": loop.interrupted,
         "train_seconds": loop.elapsed(),

@@ -186,9 +186,10 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
     table1 = load_reproduce_config(REPO / "configs/reproduce/table1.yaml", [f"--results_dir={tmp_path}"])
     widths = {cell.policy["hidden_units"]: cell for cell in table1.cells}
     assert run_recipe(table1, "place_in_box", widths[128], 0) != run_recipe(table4, "place_in_box", single4, 0)
-    fixed = replace(table4, budget=None, train=table1.train)  # Table 4 without its budget, at Table 1's updates
-    assert run_recipe(table1, "place_in_box", widths[128], 0) == run_recipe(fixed, "place_in_box", single4, 0)
-    assert run_recipe(table1, "place_in_box", widths[64], 0) != run_recipe(fixed, "place_in_box", single4, 0)
+    shared = replace(table4, budget=table1.budget)  # Table 4 at Table 1's budget rule
+    assert run_recipe(table1, "place_in_box", widths[128], 0) == run_recipe(shared, "place_in_box", single4, 0)
+    assert run_recipe(table1, "place_in_box", widths[64], 0) != run_recipe(shared, "place_in_box", single4, 0)
+    fixed = replace(table4, budget=None)  # Table 4 without its budget: the grid's train.steps
     # Table 7's demonstrations vary; its encoders are the task's own, trained on the default collection
     table7 = load_reproduce_config(REPO / "configs/reproduce/table7.yaml", [f"--results_dir={tmp_path}"])
     demos250 = run_recipe(table7, "place_in_box", table7.cells[0], 0)

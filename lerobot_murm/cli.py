@@ -196,6 +196,13 @@ def _reproduce(args: argparse.Namespace) -> None:
     from lerobot_murm.training_loop import TrainingInterrupted
 
     config = load_reproduce_config(args.config, args.overrides)
+    if config.budget is not None:
+        whole = load_reproduce_config(args.config)
+        if (config.tasks, config.seeds, config.cells) != (whole.tasks, whole.seeds, whole.cells):
+            raise ValueError(
+                f"{config.name} chooses one budget over all its runs, so it runs whole: drop --tasks, --seeds "
+                "and --cells (a stopped sitting resumes where it was)"
+            )
     executor = make_executor(
         args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task, args.shard_episodes
     )  # a bad flag: ValueError, one line

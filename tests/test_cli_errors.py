@@ -257,6 +257,12 @@ def test_the_whole_reproduce_grid_is_checked_before_collecting(tmp_path, capsys)
     path.write_text(yaml.safe_dump(grid))
     code, line = murm_error(["reproduce", "--config", path], capsys)
     assert code == 2 and "noise_std must be a finite number" in line
+    # a budget grid's budget is chosen over all its runs: a sitting of part of it would choose it on that part
+    grid["collection"] = {}
+    grid["budget"] = {"cap": 20, "every": 10}
+    path.write_text(yaml.safe_dump(grid))
+    code, line = murm_error(["reproduce", "--config", path, "--seeds=[0]"], capsys)
+    assert code == 2 and "bad chooses one budget over all its runs, so it runs whole" in line
     assert not (tmp_path / "work").exists() and not (tmp_path / "results").exists()
 
 

@@ -14,6 +14,7 @@ from lerobot_murm.vqvae import VQVAE, VQVAEConfig
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import OFFLINE, run
+from one_line import murm_error
 
 MURM = Path(sys.executable).parent / "murm"
 COLLECT = [
@@ -39,15 +40,6 @@ def murm_stderr(argv: list, cwd: Path, python: str | None = None) -> tuple[int, 
     result = run([*command, *argv], timeout=300, cwd=cwd, env=QUIET)
     code, stderr = result.returncode, result.stderr
     return code, stderr.splitlines()
-
-
-def murm_error(argv: list[str], capsys) -> tuple[int, str]:
-    """Run `murm argv` in this process: (exit code, the one line of stderr)."""
-    with pytest.raises(SystemExit) as stop:
-        main([str(a) for a in argv])
-    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("murm")]
-    assert len(lines) == 1, lines
-    return stop.value.code, lines[0]
 
 
 @pytest.mark.parametrize(

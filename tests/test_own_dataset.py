@@ -15,7 +15,6 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import make_pre_post_processors
 from lerobot.policies.utils import prepare_observation_for_inference
 
-from lerobot_murm.cli import main
 from lerobot_murm.features import ACTION, image_key, latent_goal_key, latent_key
 from lerobot_murm.policy.modeling_murm import MurmPolicy
 from lerobot_murm.vqvae import VQVAE, VQVAEConfig
@@ -26,6 +25,7 @@ from lerobot_murm.vqvae.resize import encoder_side, fit_images
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import run_command
+from one_line import murm_error
 
 BIN = Path(sys.executable).parent
 CAMERAS = ("laptop", "phone")
@@ -222,15 +222,6 @@ def test_frames_are_centre_cropped_to_a_square_then_area_resized_and_never_upsam
     same = torch.rand(2, 3, 48, 48)
     assert fit_images(same, 48) is same  # frames at the encoder's side (murm collect's) pass untouched
     assert encoder_side(16, 16, 48) == 16 and encoder_side(30, 41, 48) == 28  # a multiple of 4, never larger
-
-
-def murm_error(argv: list, capsys) -> tuple[int, str]:
-    """Run `murm argv` in this process: (exit code, the one line of stderr)."""
-    with pytest.raises(SystemExit) as stop:
-        main([str(a) for a in argv])
-    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("murm")]
-    assert len(lines) == 1, lines
-    return stop.value.code, lines[0]
 
 
 @pytest.mark.parametrize(

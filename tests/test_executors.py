@@ -220,9 +220,12 @@ def _processes_with(marker: str) -> list[int]:
 
 
 @pytest.mark.slow
-def test_no_job_process_outlives_a_killed_driver_and_a_stopped_run_keeps_its_checkpoint(tmp_path):
-    """kill -9 of `murm reproduce --jobs 2` mid-training: each run saves its checkpoint at its
-    next step and its process exits instead of starting the jobs still queued for it."""
+@pytest.mark.parametrize("stop", ["kill -9 the driver", "Ctrl-C"])
+def test_a_stopped_grid_keeps_its_checkpoints_and_starts_no_queued_job(tmp_path, stop):
+    """`murm reproduce --jobs 2` stopped mid-training, by kill -9 of the driver or by Ctrl-C
+    (SIGINT to the whole process group): each run saves its checkpoint at its next step, no
+    process outlives the stop, and the jobs still queued behind the two running ones never
+    start."""
     import torch
 
     name, value = "MURM_TEST_DRIVER", tmp_path.name
@@ -230,22 +233,25 @@ def test_no_job_process_outlives_a_killed_driver_and_a_stopped_run_keeps_its_che
     env = {**os.environ, "HF_HUB_OFFLINE": "1", name: value}
     # no evaluation before the end: the only checkpoints are a run's start and the one its stop writes
     long = [*TINY, "--train.steps=100000", "--train.eval_every=100000", "--seeds=[0,1,2]", "--stack_seeds=false"]
-    driver = subprocess.Popen(
-        [
-            str(MURM),
-            "reproduce",
-            "--config",
-            str(REPO / "configs/reproduce/smoke.yaml"),
-            *long,
-            "--work_dir=work",
-            "--results_dir=results",
-            "--jobs=2",
-        ],
-        cwd=tmp_path,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    stderr = tmp_path / "stderr.txt"
+    with stderr.open("wb") as err:
+        driver = subprocess.Popen(
+            [
+                str(MURM),
+                "reproduce",
+                "--config",
+                str(REPO / "configs/reproduce/smoke.yaml"),
+                *long,
+                "--work_dir=work",
+                "--results_dir=results",
+                "--jobs=2",
+            ],
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=err,
+            start_new_session=True,  # its own process group, as a terminal gives a command
+        )
     logs = lambda: sorted((tmp_path / "work" / "runs").glob("smoke/*/*/seed*/log.csv"))  # noqa: E731
     try:
         deadline = time.monotonic() + 600
@@ -254,11 +260,16 @@ def test_no_job_process_outlives_a_killed_driver_and_a_stopped_run_keeps_its_che
                 break  # both jobs are training
             time.sleep(0.2)
         assert driver.poll() is None, "the driver ended before both runs were training"
-        driver.kill()
+        if stop == "Ctrl-C":
+            os.killpg(driver.pid, signal.SIGINT)
+            assert driver.wait(timeout=180) == 1
+            assert "finished cells are kept" in stderr.read_text().splitlines()[-1]
+        else:
+            driver.kill()
         deadline = time.monotonic() + 120
         while _processes_with(marker) and time.monotonic() < deadline:
             time.sleep(0.5)
-        assert not _processes_with(marker), "job or simulator processes outlived their driver"
+        assert not _processes_with(marker), "job or simulator processes outlived the stop"
     finally:
         for pid in _processes_with(marker):
             os.kill(pid, signal.SIGKILL)

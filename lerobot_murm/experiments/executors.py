@@ -47,13 +47,14 @@ def threads_per_job(jobs: int, cores: int | None = None) -> int:
 
 _parent_gone = threading.Event()  # in a job process: the driver died
 _job_running = threading.Event()  # in a job process: a job is under way
+_stopping = threading.Event()  # in a job process: the grid is stopping; take no further job
 
 
-def _start_job_process(threads: int) -> None:
-    """A job process divides the cores, and does not outlive its driver: when the driver dies
-    (kill -9), an idle job process exits, and a running job gets the SIGTERM of a stop
-    request (a training run saves its checkpoint at its next step), after which the process
-    exits instead of taking the jobs still queued for it."""
+def _start_job_process(threads: int, stop: Any) -> None:
+    """A job process divides the cores, and stops with its driver: when the driver dies
+    (kill -9) or asks its jobs to stop (`stop` set: Ctrl-C, or another job was stopped), a
+    running job gets a SIGTERM (a training run saves its checkpoint at its next step), and
+    the process then refuses the jobs already queued for it instead of starting them."""
     torch.set_num_threads(threads)
     sentinel = multiprocessing.parent_process().sentinel
 
@@ -64,13 +65,25 @@ def _start_job_process(threads: int) -> None:
             os._exit(1)
         os.kill(os.getpid(), signal.SIGTERM)
 
+    def stop_when_asked() -> None:
+        stop.wait()
+        _stopping.set()
+        if _job_running.is_set():
+            os.kill(os.getpid(), signal.SIGTERM)
+
     threading.Thread(target=exit_with_driver, daemon=True, name="exit-with-driver").start()
+    threading.Thread(target=stop_when_asked, daemon=True, name="stop-when-asked").start()
 
 
 def _run_job(fn: Callable, *job: Any) -> Any:
+    if _stopping.is_set():
+        raise TrainingInterrupted("not started: the grid was stopping")
     _job_running.set()
     try:
         return fn(*job)
+    except (TrainingInterrupted, CollectionInterrupted, KeyboardInterrupt):
+        _stopping.set()  # this job was stopped (Ctrl-C reaches the whole process group): so is the grid
+        raise
     finally:
         _job_running.clear()
         if _parent_gone.is_set():
@@ -84,6 +97,8 @@ class ProcessExecutor:
     oversubscription); dividing the cores between them lets their throughputs add up.
     Each run keeps its `train.eval_envs` simulator processes: the camera-masking draws
     depend on how evaluation episodes are batched, so resizing them would change results.
+    A stop (Ctrl-C, which reaches every process of the group, or one job stopped or failed)
+    stops every running job at its next step with its checkpoint, and starts no queued one.
     """
 
     shard_episodes: int | None = None
@@ -92,8 +107,10 @@ class ProcessExecutor:
         if jobs < 1:
             raise ValueError(f"--jobs must be at least 1, got {jobs}")
         self.threads = threads_per_job(jobs, cores)
+        context = get_context("forkserver")
+        self.stop = context.Event()  # set when the grid stops: every job process stops its job
         self.pool = ProcessPoolExecutor(
-            jobs, mp_context=get_context("forkserver"), initializer=_start_job_process, initargs=(self.threads,)
+            jobs, mp_context=context, initializer=_start_job_process, initargs=(self.threads, self.stop)
         )
 
     def map(self, fn: Callable, jobs: list[Job], cpus: int | None = None, gpus: float | None = None) -> Iterator:
@@ -105,8 +122,10 @@ class ProcessExecutor:
                 for future in done:
                     yield futures[future], future.result()
         finally:
-            for future in pending:
-                future.cancel()
+            if pending:  # stopped early (Ctrl-C, or a job stopped or failed): stop the rest, keep their checkpoints
+                self.stop.set()
+                for future in pending:
+                    future.cancel()
 
     def close(self) -> None:
         self.pool.shutdown(cancel_futures=True)

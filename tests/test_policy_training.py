@@ -127,6 +127,9 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
     summary = json.loads((run_dir / "final_eval.json").read_text())
     assert [r["episodes"] for r in summary["final"]] == [2, 2]
     assert summary["validation_seeds"] == [200_000, 200_001] and summary["eval_seeds"] == [300_000, 300_001]
+    # the run's own config reads back as the config it trained: run again, the run is finished
+    again = run_command([BIN / "murm", "train", "--config", run_dir / "train_config.yaml"], cwd=tmp_path)
+    assert "masking 50%: success" in again and "resuming" not in again
 
     # a finished run is not redone; asked for more steps it resumes from the checkpoint (its
     # evaluation at 6 steps kept beside), asked for fewer it refuses in one line

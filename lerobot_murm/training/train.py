@@ -25,10 +25,12 @@ import json
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
+from enum import Enum
 from pathlib import Path
 
 import draccus
 import torch
+import yaml
 from lerobot.configs import FeatureType
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.utils.feature_utils import dataset_to_policy_features
@@ -254,8 +256,25 @@ def _open_run(config: TrainConfig, state: dict | None, dataset, replay: LatentRe
         for name in ("log.csv", "eval.csv"):
             set_aside_rows_after(run.out / name, run.step)
         print(f"resuming from step {run.step} ({run.last})")
-    draccus.dump(config, (run.out / "train_config.yaml").open("w"))
+    write_config(config, run.out / "train_config.yaml")
     return run
+
+
+def write_config(config: TrainConfig, path: Path) -> None:
+    """The run's config as `murm train --config` reads it back. draccus writes LeRobot's
+    str-valued enums (FeatureType, NormalizationMode) as Python objects that no YAML loader
+    reads: they are written by name here, as draccus writes any other enum."""
+
+    def plain(value: object) -> object:
+        if isinstance(value, Enum):
+            return value.name
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, list | tuple):
+            return [plain(v) for v in value]
+        return value
+
+    write_atomic(path, yaml.safe_dump(plain(draccus.encode(config)), sort_keys=False).encode())
 
 
 def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device: torch.device, sitting: float) -> None:

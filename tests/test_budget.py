@@ -125,3 +125,38 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
         env=env,
     )
     assert "The table's one budget" in (tmp_path / "REPORT.md").read_text()
+
+    # another grid with the same run (Table 4's cells are the hindsight grid's) starts it from
+    # this grid's checkpoint, in a copy of its folder; a run of another config trains from scratch
+    first = {
+        seed: tmp_path / "work" / "runs" / "budget_tiny" / "place_in_box" / "single-global" / f"seed{seed}"
+        for seed in (0, 1)
+    }
+    before = {seed: (run / "eval.csv").read_text() for seed, run in first.items()}
+    other = grid | {
+        "name": "budget_other",
+        "budget": {"cap": 40, "every": 10, "episodes": 2, "max_cap": 40},
+        "cells": [
+            grid["cells"][0],
+            {"method": "single", "cameras": ["global"], "policy": {"hidden_units": 64}, "label": "narrow"},
+        ],
+    }
+    config.write_text(yaml.safe_dump(other))
+    out = run_command(args, tmp_path, env=env, timeout=900)
+    assert out.count("(the same run, trained by another grid)") == 2, out
+    for seed, run in first.items():
+        assert (run / "eval.csv").read_text() == before[seed]  # the first grid's folder is untouched
+        ours = json.loads(
+            (
+                tmp_path / "results" / "budget_other" / "curves" / f"place_in_box__single-global__seed{seed}.json"
+            ).read_text()
+        )
+        theirs = json.loads(
+            (
+                tmp_path / "results" / "budget_tiny" / "curves" / f"place_in_box__single-global__seed{seed}.json"
+            ).read_text()
+        )
+        assert ours["curve"][: len(theirs["curve"])] == theirs["curve"] and ours["steps"] == 40
+        assert f"starts from {run} at step {theirs['steps']}" in out
+    narrow = tmp_path / "work" / "runs" / "budget_other" / "place_in_box" / "narrow" / "seed0"
+    assert [line.split(",")[0] for line in (narrow / "log.csv").read_text().splitlines()[1:3]] == ["10", "20"]

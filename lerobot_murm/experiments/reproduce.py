@@ -46,6 +46,7 @@ from lerobot_murm.experiments.configuration_reproduce import CellSpec, Reproduce
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, read_result, write_tables
 from lerobot_murm.experiments.reuse import (
+    adopt_run,
     budget_recipe,
     finished_elsewhere,
     grid_so_far,
@@ -141,7 +142,11 @@ def train_run(
     with ExitStack() as locks:
         for seed in seeds:
             locks.enter_context(exclusive(run_dir(config, task, cell, seed), wait=True))
-        summaries = train_seeds([train_config(config, task, cell, seed, root, encoders, steps) for seed in seeds])
+        configs = [train_config(config, task, cell, seed, root, encoders, steps) for seed in seeds]
+        if steps is not None and not config.timed:  # a budget grid's run may have trained in another grid
+            for c in configs:
+                adopt_run(c, Path(config.work_dir) / "runs", config.name)
+        summaries = train_seeds(configs)
     return [run_result(config, task, cell, root, encoders, summary, start) for summary in summaries]
 
 

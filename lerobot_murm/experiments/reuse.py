@@ -8,10 +8,13 @@ their cell no longer produces set aside, and the grid a results folder records
 
 from __future__ import annotations
 
+import copy
 import json
+import shutil
 from dataclasses import asdict, replace
 from pathlib import Path
 
+from lerobot_murm.checkpointing import COMPLETE_MARK, load_state
 from lerobot_murm.device import resolve_device
 from lerobot_murm.experiments.artifacts import (
     dataset_root,
@@ -19,8 +22,10 @@ from lerobot_murm.experiments.artifacts import (
 )
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.results import read_result
+from lerobot_murm.locking import FolderInUse, exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.precision import resolve_precision
+from lerobot_murm.training.train import TrainConfig, config_dict, read_config_dict
 
 
 def policy_overrides(method: str, cameras: list[str], policy: dict) -> dict:
@@ -149,3 +154,47 @@ def grid_so_far(config: ReproduceConfig, stored: Path) -> ReproduceConfig:
         return config
     tasks = [*before.tasks, *(task for task in config.tasks if task not in before.tasks)]
     return replace(config, tasks=tasks, seeds=sorted({*before.seeds, *config.seeds}))
+
+
+def _comparable(run: dict) -> dict:
+    """A run's config as two grids' runs of one recipe share it: all but its folder, its
+    current cap and the features its policy reads off the dataset when it is built."""
+    policy = {k: v for k, v in run["policy"].items() if k not in ("input_features", "output_features")}
+    return {k: v for k, v in run.items() if k not in ("output_dir", "steps")} | {"policy": policy}
+
+
+def adopt_run(config: TrainConfig, runs: Path, grid: str) -> Path | None:
+    """Start a budget grid's run that has not started here from another grid's run of the
+    very same config (every field but its folder and cap) trained no further than this cap:
+    its folder (checkpoints, kept policies, logs) is copied, not shared (one writer per
+    folder), and the run goes on from its checkpoint as if it had trained here. Table 4's
+    rendered-goal cells are the hindsight grid's, Table 3's place_in_box global camera is
+    Table 2's default epsilon. Returns the folder taken, or None."""
+    own = Path(config.output_dir)
+    if own.exists():
+        return None
+    probe = copy.deepcopy(config)
+    probe.policy.load_encoder_settings()  # as a run's stored config has them (and epsilon)
+    wanted = _comparable(config_dict(probe))
+    for donor in sorted(Path(runs).glob(f"*/{config.task}/*/{own.name}")):
+        if donor.parents[2].name == grid or not (donor / "checkpoints" / "last" / COMPLETE_MARK).exists():
+            continue
+        stored = read_config_dict(donor / "train_config.yaml")
+        if stored is None or _comparable(stored) != wanted:
+            continue
+        try:
+            with exclusive(donor):  # not while its own grid trains it
+                step = load_state(donor / "checkpoints" / "last" / COMPLETE_MARK)["step"]
+                if step > config.steps:
+                    continue
+                staging = own.with_name(f".{own.name}.adopting")
+                shutil.rmtree(staging, ignore_errors=True)  # a copy a crash cut short
+                shutil.copytree(donor, staging)
+        except FolderInUse:
+            continue
+        for named in [staging / "train_config.yaml", *staging.glob("final_eval*.json")]:  # the folder it now is
+            named.write_text(named.read_text().replace(str(donor), str(own)))
+        staging.rename(own)
+        print(f"{own}: starts from {donor} at step {step:,} (the same run, trained by another grid)", flush=True)
+        return donor
+    return None

@@ -260,10 +260,10 @@ def _open_run(config: TrainConfig, state: dict | None, dataset, replay: LatentRe
     return run
 
 
-def write_config(config: TrainConfig, path: Path) -> None:
-    """The run's config as `murm train --config` reads it back. draccus writes LeRobot's
-    str-valued enums (FeatureType, NormalizationMode) as Python objects that no YAML loader
-    reads: they are written by name here, as draccus writes any other enum."""
+def config_dict(config: TrainConfig) -> dict:
+    """The config as plain YAML data. draccus leaves LeRobot's str-valued enums (FeatureType,
+    NormalizationMode) as objects that YAML writes as Python objects no loader reads: here
+    they are their names, as draccus writes any other enum."""
 
     def plain(value: object) -> object:
         if isinstance(value, Enum):
@@ -274,7 +274,30 @@ def write_config(config: TrainConfig, path: Path) -> None:
             return [plain(v) for v in value]
         return value
 
-    write_atomic(path, yaml.safe_dump(plain(draccus.encode(config)), sort_keys=False).encode())
+    return plain(draccus.encode(config))
+
+
+def write_config(config: TrainConfig, path: Path) -> None:
+    """The run's `train_config.yaml`, as `murm train --config` reads it back."""
+    write_atomic(path, yaml.safe_dump(config_dict(config), sort_keys=False).encode())
+
+
+class _RunConfigLoader(yaml.SafeLoader):
+    """Also reads the train_config.yaml of runs from before `config_dict`, with each enum as
+    `!!python/object/apply:<enum> [VALUE]` (LeRobot's enums are named by their values)."""
+
+
+_RunConfigLoader.add_multi_constructor(
+    "tag:yaml.org,2002:python/object/apply:", lambda loader, _, node: loader.construct_sequence(node)[0]
+)
+
+
+def read_config_dict(path: Path) -> dict | None:
+    """A run folder's `train_config.yaml` as `config_dict` gives it; None if it does not read."""
+    try:
+        return yaml.load(Path(path).read_text(), _RunConfigLoader)
+    except (OSError, yaml.YAMLError):
+        return None
 
 
 def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device: torch.device, sitting: float) -> None:

@@ -489,6 +489,11 @@ def test_a_grid_without_a_paper_table_gets_no_paper_columns(tmp_path):
     assert ours.splitlines()[0] == "| cell | masking | place_in_box | place_in_random_box | pick_up |"
     assert "| single-global | 0% | - | - | 56.0 (n=1) |" in ours  # one seed: no sample std
     assert "pick_up: ours | paper" in comparison("table3", rows)
+    # study v1's number in its own column where it differs from ours, not where it is ours
+    assert comparison("table3", rows, earlier=rows) == comparison("table3", rows)
+    earlier = [rows[0] | {"success_mean": "10.0"}]
+    with_v1 = comparison("table3", rows, ("pick_up",), earlier)
+    assert "pick_up: ours | v1 | paper" in with_v1 and "| single-global | 0% | 56.0 (n=1) | 10.0 | 15.7 |" in with_v1
 
 
 def test_a_choosing_grid_reports_validation_episodes_and_never_the_test_ones():

@@ -56,18 +56,28 @@ def _per_task(
     }
 
 
-def comparison(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS) -> str:
+def comparison(name: str, rows: list[dict], tasks: tuple[str, ...] = TASKS, earlier: list[dict] | None = None) -> str:
     """Ours beside the paper's, per (cell, masking) row and task; '-' where not run yet. A
-    grid of our own (no paper table) has no paper columns."""
+    grid of our own (no paper table) has no paper columns. `earlier`: study v1's rows of the
+    same table (`results/v1/NAME.csv`), shown in their own column where they differ from ours."""
     with_paper = name in PAPER_TABLES
+    v1 = {(r["cell"], float(r["mask_p"]), r["task"]): float(r["success_mean"]) for r in earlier or []}
+    ours = {(r["cell"], float(r["mask_p"]), r["task"]): float(r["success_mean"]) for r in rows}
+    with_v1 = any(v1.get(key, value) != value for key, value in ours.items())
+    columns = ["ours"] + (["v1"] if with_v1 else []) + (["paper"] if with_paper else [])
     lines = [
-        "| cell | masking | " + " | ".join(f"{t}: ours | paper" if with_paper else t for t in tasks) + " |",
-        "|---|---:|" + ("---:|---:|" if with_paper else "---:|") * len(tasks),
+        "| cell | masking | "
+        + " | ".join(f"{t}: {' | '.join(columns)}" if len(columns) > 1 else t for t in tasks)
+        + " |",
+        "|---|---:|" + "---:|" * len(columns) * len(tasks),
     ]
     for (cell, mask_p), per_task in _per_task(name, rows, tasks).items():
         cells = []
-        for r, value in per_task:
+        for task, (r, value) in zip(tasks, per_task, strict=True):
             cells.append(f"{success_text(r)} (n={r['seeds']})" if r else "-")
+            if with_v1:
+                earlier_value = v1.get((cell, mask_p, task))
+                cells.append("" if earlier_value is None else f"{earlier_value:.1f}")
             if with_paper:
                 cells.append("" if value is None else f"{value:.1f}")
         lines.append(f"| {cell} | {mask_p:.0%} | " + " | ".join(cells) + " |")
@@ -270,7 +280,12 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
             f"(n = seeds finished; a single seed has none), {rows[0]['episodes_per_seed']} {split} episodes per seed "
             f"and masking level{beside}. "
             f"Configuration: [`{where / 'config.yaml'}`]({where / 'config.yaml'}).\n\n"
-            + comparison(results.name, rows, grid_tasks(results))
+            + comparison(
+                results.name,
+                rows,
+                grid_tasks(results),
+                read_table(v1) if (v1 := results_dir / "v1" / f"{results.name}.csv").exists() else None,
+            )
             + (f"\n![ours beside the paper]({where / 'vs_paper.png'})\n" if against_paper else "")
             + (f"\nTraining time (Table 5):\n\n{time_table(runs, TABLE5)}" if results.name == "table5" else "")
             + (

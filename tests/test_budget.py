@@ -158,5 +158,6 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
         )
         assert ours["curve"][: len(theirs["curve"])] == theirs["curve"] and ours["steps"] == 40
         assert f"starts from {run} at step {theirs['steps']}" in out
+        assert ours["adopted_from"]["step"] == theirs["steps"] and ours["adopted_from"]["from"] == str(run)
     narrow = tmp_path / "work" / "runs" / "budget_other" / "place_in_box" / "narrow" / "seed0"
     assert [line.split(",")[0] for line in (narrow / "log.csv").read_text().splitlines()[1:3]] == ["10", "20"]

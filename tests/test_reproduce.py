@@ -411,9 +411,15 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     )
     draccus.dump(config, (grid / "config.yaml").open("w"))
     top = {"recipe": {"precision": "torch.bfloat16"}, "encoders": {"top": "3a2b1039f7cb38bb"}}
+    side = {  # three seeds side by side, started from another grid's run at step 10,000
+        "wall_s": 3960.0,
+        "seeds_together": 3,
+        "adopted_from": {"from": "/w/runs/table2/pick_up/single-side/seed0", "step": 10000, "wall_s": 360.0},
+    }
     for cell, reused in (
         ("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}),
         ("single-top", top),
+        ("single-side", side),
     ):
         run = stored_run("pick_up", cell, "single", [cell.split("-")[1]], **reused)
         (grid / "runs" / f"pick_up__{cell}__seed0.json").write_text(json.dumps(run))
@@ -425,7 +431,10 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert "place_in_random_box" not in table  # a task the grid does not run gets no column
     assert rest.index("Top beats nothing here.") < rest.index("Runs:")
     assert "6.0 min (the run of table4/pick_up__single-global__seed0)" in rest
-    assert "Machine time of the runs this grid trained (1): 0.1 h." in rest
+    assert "66.0 min (from step 10,000 of table2/pick_up/single-side/seed0)" in rest
+    # top's 6 min, and a third of side's 60 min after the other grid's 6
+    assert "Machine time of the runs this grid trained (2; seeds trained side by side counted once" in rest
+    assert "from there): 0.4 h." in rest
     assert "| cpu | bf16 | top 3a2b1039 |" in rest  # which precision and which draw of the encoders
     assert "| cpu | - | - |" in rest  # a run from before they were recorded
     assert (grid / "table.csv").exists() and (grid / "curves.png").exists()

@@ -239,16 +239,23 @@ def run_list(results: Path, split: str = "test") -> str:
     ]
     trained, seconds = 0, 0.0
     for r in stored_results(results / "runs"):
-        if "reused_from" not in r:
-            trained, seconds = trained + 1, seconds + r["wall_s"]
+        adopted = r.get("adopted_from")
+        if "reused_from" not in r:  # seeds side by side share one wall time; an adopted run's start was paid before
+            paid = r["wall_s"] - (adopted["wall_s"] if adopted else 0.0)
+            trained, seconds = trained + 1, seconds + paid / r.get("seeds_together", 1)
         finals = ", ".join(f"{f['mask_p']:.0%}: {100 * f['success_rate']:.0f}" for f in final_evaluations(r, split))
         wall = f"{r['wall_s'] / 60:.1f} min" + (f" (the run of {r['reused_from']})" if "reused_from" in r else "")
+        if adopted:
+            wall += f" (from step {adopted['step']:,} of {'/'.join(Path(adopted['from']).parts[-4:])})"
         lines.append(
             f"| {r['task']} | {r['cell']} | {r['seed']} | {r['steps']} | {finals} | "
             f"{wall} | {r['train_steps_per_s']} | {r['hardware']} | {precision_text(r)} | "
             f"{encoders_text(r)} |"
         )
-    return "\n".join(lines) + f"\n\nMachine time of the runs this grid trained ({trained}): {seconds / 3600:.1f} h.\n"
+    return "\n".join(lines) + (
+        f"\n\nMachine time of the runs this grid trained ({trained}; seeds trained side by side counted once, "
+        f"runs started from another grid's from there): {seconds / 3600:.1f} h.\n"
+    )
 
 
 def refresh_tables(results: Path) -> None:

@@ -46,6 +46,7 @@ from lerobot_murm.experiments.configuration_reproduce import CellSpec, Reproduce
 from lerobot_murm.experiments.executors import SerialExecutor
 from lerobot_murm.experiments.results import final_evaluations, grid_results, markdown_table, read_result, write_tables
 from lerobot_murm.experiments.reuse import (
+    ADOPTED,
     adopt_run,
     budget_recipe,
     finished_elsewhere,
@@ -207,6 +208,8 @@ def run_result(
         # trained side by side with this many seeds (their shared wall time and steps/s above)
         "seeds_together": summary.get("seeds_together", 1),
     }
+    if (adopted := out / ADOPTED).exists():  # started from another grid's run: its part of wall_s
+        result["adopted_from"] = json.loads(adopted.read_text())
     return result
 
 

@@ -156,6 +156,9 @@ def grid_so_far(config: ReproduceConfig, stored: Path) -> ReproduceConfig:
     return replace(config, tasks=tasks, seeds=sorted({*before.seeds, *config.seeds}))
 
 
+ADOPTED = "adopted.json"  # in a run folder started from another grid's: from where, at which step
+
+
 def _comparable(run: dict) -> dict:
     """A run's config as two grids' runs of one recipe share it: all but its folder, its
     current cap and the features its policy reads off the dataset when it is built."""
@@ -184,7 +187,8 @@ def adopt_run(config: TrainConfig, runs: Path, grid: str) -> Path | None:
             continue
         try:
             with exclusive(donor):  # not while its own grid trains it
-                step = load_state(donor / "checkpoints" / "last" / COMPLETE_MARK)["step"]
+                state = load_state(donor / "checkpoints" / "last" / COMPLETE_MARK)
+                step = state["step"]
                 if step > config.steps:
                     continue
                 staging = own.with_name(f".{own.name}.adopting")
@@ -194,6 +198,9 @@ def adopt_run(config: TrainConfig, runs: Path, grid: str) -> Path | None:
             continue
         for named in [staging / "train_config.yaml", *staging.glob("final_eval*.json")]:  # the folder it now is
             named.write_text(named.read_text().replace(str(donor), str(own)))
+        # the run's wall time goes on from the other grid's: what that grid paid is said here
+        taken = {"from": str(donor), "step": step, "wall_s": state.get("elapsed_s", 0.0)}
+        (staging / ADOPTED).write_text(json.dumps(taken) + "\n")
         staging.rename(own)
         print(f"{own}: starts from {donor} at step {step:,} (the same run, trained by another grid)", flush=True)
         return donor

@@ -314,7 +314,10 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
     if graph is not None:
         make_capturable(updater.optimizer)
     updates = Updates(lambda: updater.step(replay.sample_stacked(config.batch_size, generators)), graph, device=device)
-    loop = TrainingLoop(until, start=runs[0].step, desc="murm train")
+    # which run a bar is: `murm reproduce --jobs N` shows N of them at once
+    label = f"{config.task} {policy_config.method}-{'+'.join(policy_config.cameras)}"
+    seeds = f" seed{'s' if len(runs) > 1 else ''} {','.join(str(r.config.seed) for r in runs)}"
+    loop = TrainingLoop(until, start=runs[0].step, desc=f"murm train {label}{seeds}")
     elapsed = lambda run: run.earlier_s + time.perf_counter() - sitting  # noqa: E731
 
     def checkpoint() -> None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import signal
 import time
 
-from tqdm import tqdm
+from lerobot_murm.progress import progress
 
 
 class TrainingInterrupted(RuntimeError):
@@ -63,7 +63,7 @@ class TrainingLoop:
     def __enter__(self) -> TrainingLoop:
         self._entered = time.perf_counter()
         self._stop.__enter__()
-        self._progress = tqdm(total=self.total, initial=self.step, desc=self.desc, unit="step")
+        self._progress = progress(total=self.total, initial=self.step, desc=self.desc, unit="step")
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -85,7 +85,7 @@ class TrainingLoop:
 
     def show(self, **values: object) -> None:
         """Figures beside the progress bar (losses, success)."""
-        self._progress.set_postfix(**values)
+        self._progress.set_postfix(refresh=False, **values)
 
     @property
     def finished(self) -> bool:

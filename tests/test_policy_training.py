@@ -111,6 +111,8 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
     out = run_command([BIN / "murm", "train", "--config", config], cwd=tmp_path)
     assert "masking 50%: success" in out
     assert_quiet(out)
+    # its progress in a log file: whole lines naming the run, no carriage returns
+    assert "\r" not in out and "murm train place_in_box separated_q-global+adjacent seed 0: 100%" in out
     run_dir = tmp_path / "run"
     for name in ("log.csv", "eval.csv", "learning_curve.png", "final_eval.json", "train_config.yaml"):
         assert (run_dir / name).exists(), name

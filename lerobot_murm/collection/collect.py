@@ -35,7 +35,6 @@ from pathlib import Path
 import datasets
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from tqdm import tqdm
 
 from lerobot_murm.checks import check_writable
 from lerobot_murm.collection import dataset as murm_dataset
@@ -48,6 +47,7 @@ from lerobot_murm.env.cameras import validate_camera_names
 from lerobot_murm.env.murm_env import TASK_DESCRIPTIONS
 from lerobot_murm.expert import default_noise_std
 from lerobot_murm.locking import exclusive
+from lerobot_murm.progress import progress
 
 
 @dataclass
@@ -137,18 +137,19 @@ def _collect(config: CollectConfig, donors: dict[bool, Donor]) -> dict:
     datasets.disable_progress_bars()  # one bar per episode write would drown ours
     stop_reason, write_error = None, None
     start = time.perf_counter()
-    progress = tqdm(total=config.episodes, initial=done, desc=f"collect {config.task}", unit="ep")
+    bar = progress(total=config.episodes, initial=done, desc=f"collect {config.task}", unit="ep")
     with _deferred_stop_signals() as stop_requested:
         try:
             indices = range(config.first_episode + done, config.first_episode + config.episodes)
             for written, episode in enumerate(_episodes(config, indices, donors), start=1):
                 murm_dataset.save_staged_episode(dataset, episode, description)  # never cut in half
                 successes.append(episode.succeeded)
-                progress.set_postfix(
+                bar.set_postfix(
+                    refresh=False,
                     ep_per_s=f"{written / (time.perf_counter() - start):.2f}",
                     success=f"{np.mean(successes[done:]):.0%}",
                 )
-                progress.update(1)
+                bar.update(1)
                 if stop_requested():
                     stop_reason = "interrupted"
                     break
@@ -159,7 +160,7 @@ def _collect(config: CollectConfig, donors: dict[bool, Donor]) -> dict:
         except OSError as error:  # a full disk: what was flushed stays, --resume repairs the rest
             write_error = error
         finally:
-            progress.close()
+            bar.close()
             shutil.rmtree(murm_dataset.staging_root(config.root), ignore_errors=True)  # unsaved work
     if write_error is not None:
         saved = murm_dataset.read_summary(config.root)["episodes"]

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
+from lerobot_murm.progress import progress
 from lerobot_murm.vqvae.encoder_files import encoder_fingerprint
 from lerobot_murm.vqvae.frames import (
     camera_stream,
@@ -78,12 +78,12 @@ def encode_images(
     """Chunks of uint8 (n, H, W, 3) images, `total` in all -> uint16 (total, g, g) codebook indices."""
     out = np.empty((total, model.config.grid_size, model.config.grid_size), np.uint16)
     start = 0
-    with tqdm(total=total, desc=desc, unit="img", disable=desc is None) as progress:
+    with progress(total=total, desc=desc, unit="img", disable=desc is None) as bar:
         for chunk in chunks:
             for batch in torch.from_numpy(chunk).split(ENCODE_BATCH):
                 out[start : start + len(batch)] = model.encode_indices(batch.to(device)).cpu().numpy()
                 start += len(batch)
-            progress.update(len(chunk))
+            bar.update(len(chunk))
     if start != total:
         raise ValueError(f"expected {total} images, got {start}")
     return out

@@ -20,11 +20,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from lerobot_murm.checkpointing import write_atomic
 from lerobot_murm.collection import read_recipe, run_episode
 from lerobot_murm.device import resolve_device
+from lerobot_murm.progress import progress
 from lerobot_murm.vqvae.frames import decode_pngs, open_dataset, read_camera_pngs
 from lerobot_murm.vqvae.modeling_vqvae import VQVAE
 from lerobot_murm.vqvae.train import heldout_episodes, save_reconstructions
@@ -69,7 +69,7 @@ def resimulate_object_frames(root: Path, episodes: list[int], cameras: list[str]
         for camera in cameras:
             views[camera].append(object_views[camera])
 
-    for episode in tqdm(episodes, desc="simulate held-out episodes", unit="ep"):
+    for episode in progress(iterable=episodes, desc="simulate held-out episodes", unit="ep"):
         run_episode(recipe, int(episode), observe)
         episode_index += [int(episode)] * (len(views[cameras[0]]) - len(episode_index))
     return {

@@ -1,0 +1,33 @@
+"""Progress bars that also read well in a log file.
+
+In a terminal, tqdm's bar redraws itself in place. Written to a file (`nohup murm reproduce
+... > log`, a cluster job), the same bar is a carriage return every tenth of a second:
+hours of training made megabytes of one unreadable line, with `--jobs 2` two bars
+interleaved. There, `progress` prints the bar as one plain line a minute instead.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, TextIO
+
+from tqdm import tqdm
+
+LOG_EVERY_S = 60.0  # a log file's progress line every minute
+
+
+class LogLines(tqdm):
+    """tqdm writing its bar as a whole line, at most once every `mininterval` seconds."""
+
+    def display(self, msg: str | None = None, pos: int | None = None) -> bool:
+        self.fp.write((msg or self.__str__()) + "\n")
+        self.fp.flush()
+        return True
+
+
+def progress(*, file: TextIO | None = None, **kwargs: Any) -> tqdm:
+    """A tqdm bar on `file` (stderr): in place on a terminal, else `LogLines`."""
+    file = sys.stderr if file is None else file
+    if getattr(file, "isatty", lambda: False)():
+        return tqdm(file=file, **kwargs)
+    return LogLines(file=file, mininterval=LOG_EVERY_S, ascii=True, **kwargs)

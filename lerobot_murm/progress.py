@@ -3,17 +3,19 @@
 In a terminal, tqdm's bar redraws itself in place. Written to a file (`nohup murm reproduce
 ... > log`, a cluster job), the same bar is a carriage return every tenth of a second:
 hours of training made megabytes of one unreadable line, with `--jobs 2` two bars
-interleaved. There, `progress` prints the bar as one plain line a minute instead.
+interleaved. There, `progress` prints the bar as one plain line a minute instead
+(`MURM_PROGRESS_EVERY_S` sets the seconds; 0: a line at every update).
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Any, TextIO
 
 from tqdm import tqdm
 
-LOG_EVERY_S = 60.0  # a log file's progress line every minute
+LOG_EVERY_VARIABLE = "MURM_PROGRESS_EVERY_S"  # seconds between a log file's progress lines (default 60)
 
 
 class LogLines(tqdm):
@@ -30,4 +32,5 @@ def progress(*, file: TextIO | None = None, **kwargs: Any) -> tqdm:
     file = sys.stderr if file is None else file
     if getattr(file, "isatty", lambda: False)():
         return tqdm(file=file, **kwargs)
-    return LogLines(file=file, mininterval=LOG_EVERY_S, ascii=True, **kwargs)
+    every_s = float(os.environ.get(LOG_EVERY_VARIABLE, "60"))
+    return LogLines(file=file, mininterval=every_s, miniters=1, ascii=True, **kwargs)

@@ -180,7 +180,8 @@ class BackgroundCollection:
     def __init__(self, root: Path, episodes: int, workers: int):
         args = [str(MURM), "collect", "--task", "place_in_box", "--episodes", str(episodes)]
         args += ["--workers", str(workers), "--root", str(root), "--cameras", "global,active", "--image-size", "16"]
-        self.process = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        env = {**os.environ, "MURM_PROGRESS_EVERY_S": "0"}  # a progress line at every episode
+        self.process = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
         self.stderr = ""
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()

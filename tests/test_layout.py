@@ -4,9 +4,10 @@ Read from the source (ast, nothing imported), every import counts, those inside 
 included. Floors, lowest first; a module may import its own floor and the floors below:
 
 0. base: `features.py` (the dataset's keys), `checkpointing.py`, `checks.py`, `device.py`,
-   `locking.py`, `library_logs.py`, `training_loop.py`, `config_args.py`: shared helpers that import nothing of
-   the package, so that every stage can use them. `training_loop.py` and `checkpointing.py`
-   stay here rather than in `training/`: the VQ-VAE trainer and collection use them too
+   `locking.py`, `library_logs.py`, `training_loop.py`, `config_args.py`, `progress.py`:
+   shared helpers that import nothing of the package, so that every stage can use them.
+   `training_loop.py` and `checkpointing.py` stay here rather than in `training/`: the
+   VQ-VAE trainer and collection use them too
 1. `env/`: the simulator
 2. `expert/`: the scripted expert (acts in the env)
 3. `collection/`: demonstrations as a LeRobotDataset (runs the expert in the env)
@@ -41,6 +42,7 @@ FLOORS = [
         "lerobot_murm.library_logs",
         "lerobot_murm.training_loop",
         "lerobot_murm.config_args",
+        "lerobot_murm.progress",
     ),
     ("lerobot_murm.env",),
     ("lerobot_murm.expert",),

@@ -143,7 +143,7 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
     }
     config.write_text(yaml.safe_dump(other))
     # a copy that a kill -9 cut short: half a folder beside where the run goes
-    torn = tmp_path / "work" / "runs" / "budget_other" / "place_in_box" / "single-global" / ".seed0.adopting"
+    torn = tmp_path / "work" / "runs" / "budget_other" / "place_in_box" / "single-global" / "seed0.tmp"
     (torn / "checkpoints").mkdir(parents=True)
     (torn / "log.csv").write_text("step,value_loss\n10,0.")
     out = run_command(args, tmp_path, env=env, timeout=900)

@@ -14,7 +14,7 @@ import shutil
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from lerobot_murm.checkpointing import COMPLETE_MARK, load_state
+from lerobot_murm.checkpointing import COMPLETE_MARK, load_state, staging_folder
 from lerobot_murm.device import resolve_device
 from lerobot_murm.experiments.artifacts import (
     dataset_root,
@@ -191,8 +191,7 @@ def adopt_run(config: TrainConfig, runs: Path, grid: str) -> Path | None:
                 step = state["step"]
                 if step > config.steps:
                     continue
-                staging = own.with_name(f".{own.name}.adopting")
-                shutil.rmtree(staging, ignore_errors=True)  # a copy a crash cut short
+                staging = staging_folder(own)  # emptied: a copy a crash cut short starts again
                 shutil.copytree(donor, staging)
         except FolderInUse:
             continue

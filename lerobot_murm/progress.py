@@ -32,5 +32,16 @@ def progress(*, file: TextIO | None = None, **kwargs: Any) -> tqdm:
     file = sys.stderr if file is None else file
     if getattr(file, "isatty", lambda: False)():
         return tqdm(file=file, **kwargs)
-    every_s = float(os.environ.get(LOG_EVERY_VARIABLE, "60"))
-    return LogLines(file=file, mininterval=every_s, miniters=1, ascii=True, **kwargs)
+    return LogLines(file=file, mininterval=log_every_s(), miniters=1, ascii=True, **kwargs)
+
+
+def log_every_s() -> float:
+    """`MURM_PROGRESS_EVERY_S`, checked: a bad value is one clear line, not float()'s."""
+    value = os.environ.get(LOG_EVERY_VARIABLE, "60")
+    try:
+        seconds = float(value)
+    except ValueError:
+        seconds = -1.0
+    if not seconds >= 0:  # also NaN
+        raise ValueError(f"{LOG_EVERY_VARIABLE} must be a number of seconds >= 0, got {value!r}")
+    return seconds

@@ -2,11 +2,18 @@
 
 import io
 import os
+import sys
+from pathlib import Path
 
 from tqdm import tqdm
 
 from lerobot_murm.progress import LogLines, progress
 from lerobot_murm.training_loop import TrainingLoop
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run
+
+MURM = Path(sys.executable).parent / "murm"
 
 
 def test_a_log_file_gets_whole_lines_not_carriage_returns():
@@ -46,3 +53,14 @@ def test_the_training_loops_figures_reach_the_log_line(capsys):
     err = capsys.readouterr().err
     last = [line for line in err.splitlines() if line][-1]
     assert "\r" not in err and "2/2" in last and "critic=0.25" in last
+
+
+def test_a_bad_progress_interval_is_one_clear_line(tmp_path):
+    result = run(
+        [str(MURM), "collect", "--task", "pick_up", "--episodes", "1", "--root", str(tmp_path / "ds")],
+        env={**os.environ, "MURM_PROGRESS_EVERY_S": "soon", "HF_HUB_OFFLINE": "1"},
+        timeout=300,
+    )
+    lines = [line for line in result.stderr.splitlines() if line.startswith("murm collect:")]
+    assert result.returncode == 2 and len(lines) == 1, result.stderr[-2000:]
+    assert "MURM_PROGRESS_EVERY_S must be a number of seconds >= 0, got 'soon'" in lines[0]

@@ -217,6 +217,20 @@ def _reproduce(args: argparse.Namespace) -> None:
     print(f"tables and figures: {out}")
 
 
+def _status(args: argparse.Namespace) -> None:
+    from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
+    from lerobot_murm.experiments.grid_status import grid_status, plot_status, status_markdown
+
+    config = load_reproduce_config(args.config, args.overrides)
+    cells = grid_status(config)
+    print(status_markdown(config, cells), end="")
+    if args.plot:
+        if plot_status(cells, Path(args.plot)):
+            print(f"validation curves so far: {args.plot}")
+        else:
+            print("no validation point yet: no figure")
+
+
 def _report(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.report import update_readme, write_report
 
@@ -370,6 +384,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--shard-episodes", type=int, default=100, help="ray: episodes per collection task (default: %(default)s)"
     )
     rep.set_defaults(func=_reproduce, accepts_overrides=True)
+
+    st = commands.add_parser(
+        "status",
+        help="where a grid stands: each cell's state, step, validation success and time left (reads only)",
+        epilog="Give the grid's own --work_dir=... and --results_dir=... overrides if it ran with them",
+    )
+    st.add_argument(
+        "--config", required=True, type=_config_file, help="the grid's config, e.g. configs/reproduce/table3.yaml"
+    )
+    st.add_argument("--plot", default=None, metavar="PNG", help="also draw the seeds' mean validation curves so far")
+    st.set_defaults(func=_status, accepts_overrides=True)
 
     report = commands.add_parser("report", help="REPORT.md: every finished grid in results/ beside the paper's tables")
     report.add_argument("--results", default="results")

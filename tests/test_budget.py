@@ -119,6 +119,9 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
     again = run_command(args, tmp_path, env=env, timeout=900)  # a second sitting finds everything done
     assert "trained to" not in again and f"budget {budget:,} updates" in again
 
+    status = run_command([MURM, "status", *args[2:]], tmp_path, env=env)  # `murm status` reads the grid alike
+    assert "1 of 1 cells finished" in status and f"| single-global | finished | {decision['cap']} |" in status
+
     run_command(
         [MURM, "report", f"--results={tmp_path / 'results'}", f"--out={tmp_path / 'REPORT.md'}", "--preface="],
         tmp_path,

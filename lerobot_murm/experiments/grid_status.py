@@ -1,0 +1,172 @@
+"""Where a grid stands, read from its folders while it runs (`murm status`): each cell's state,
+step, latest validation success and the time left at the rates its runs have shown.
+
+A study's grids run for days over many sittings; this is the look at them between sittings
+or beside a running one. It only reads: the run folders' `log.csv` and `eval.csv` (a row the
+trainer is writing at that moment is skipped, not misread), the grid's stored curves and
+results, and its `budget.json`. Time left is one job's: training at the last logged rate plus
+the validation evaluations still to come at the seconds the last ones took; a cell not
+started yet is costed like a started cell of the same method and camera count, if any. A
+budget grid's test at its budget, after every run reached the cap, is not counted.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from lerobot_murm.experiments.artifacts import result_path, run_dir
+from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
+from lerobot_murm.experiments.results import plot_curves, read_result
+from lerobot_murm.experiments.reuse import budget_recipe, kept_as_finished, run_recipe, same_recipe
+
+NOT_STARTED, TRAINING, AT_CAP, FINISHED = "not started", "training", "at the cap", "finished"
+
+
+@dataclass
+class CellStatus:
+    task: str
+    cell: CellSpec
+    state: str
+    step: int  # the step every seed has logged (the slowest seed's)
+    target: int  # the cap (a budget grid) or the cell's updates
+    validation: tuple[int, float] | None  # (step, seeds' mean success 0-1) unmasked, at the latest step all share
+    steps_per_s: float | None  # the last logged training rate (evaluations left out)
+    eval_s: float | None  # seconds of one validation point (all its masking levels)
+    curves: list[dict] = field(default_factory=list)  # per seed: {"task", "cell", "curve"} as plot_curves reads
+
+    @property
+    def family(self) -> tuple[str, int]:
+        """Cells that train at about the same rate: one method on as many cameras."""
+        return self.cell.method, len(self.cell.cameras)
+
+
+def _stored(path: Path) -> dict | None:
+    return read_result(path) if path.exists() else None
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    """A CSV's complete rows; a last line still being written (no newline yet) is left out."""
+    if not path.exists():
+        return []
+    text = path.read_text()
+    if not text.endswith("\n"):
+        text = text[: text.rfind("\n") + 1]
+    return list(csv.DictReader(text.splitlines()))
+
+
+def _validation(rows: list[dict[str, str]]) -> list[tuple[int, float, float, float]]:
+    """(step, mask_p, success, seconds) of a run's validation evaluations under the paper's masking."""
+    return [
+        (int(float(r["step"])), float(r["mask_p"]), float(r["success_rate"]), float(r["seconds"]))
+        for r in rows
+        if r.get("split") == "validation" and r.get("mask_mode") == "paper"
+    ]
+
+
+def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) -> CellStatus:
+    runs = [run_dir(config, task, cell, seed) for seed in config.seeds]
+    target = cap if config.budget else config.cell_steps(cell)
+    recipes = [run_recipe(config, task, cell, seed) for seed in config.seeds]
+    results = [_stored(result_path(config, task, cell, seed)) for seed in config.seeds]
+    if config.budget is None:  # as the grid keeps a stored run (an earlier study's is trained again)
+        finished = all(
+            r is not None and kept_as_finished(r.get("recipe"), rc, cell)
+            for r, rc in zip(results, recipes, strict=True)
+        )
+    else:
+        finished = all(
+            r is not None and same_recipe(r.get("recipe"), budget_recipe(rc, r["steps"]))
+            for r, rc in zip(results, recipes, strict=True)
+        )
+    curves_dir = Path(config.results_dir) / config.name / "curves"
+    stored_curves = [_stored(curves_dir / result_path(config, task, cell, seed).name) for seed in config.seeds]
+    at_cap = config.budget is not None and all(
+        c is not None and same_recipe(c.get("recipe"), rc) and c["steps"] >= cap
+        for c, rc in zip(stored_curves, recipes, strict=True)
+    )
+    logs = [read_rows(run / "log.csv") for run in runs]
+    evals = [_validation(read_rows(run / "eval.csv")) for run in runs]
+    step = min((int(float(rows[-1]["step"])) if rows else 0) for rows in logs)
+    if finished or at_cap:
+        step = max(step, target)
+    rates = [float(rows[-1]["steps_per_s"]) for rows in logs if rows]
+    unmasked = [{s: rate for s, mask_p, rate, _ in points if mask_p == 0} for points in evals]
+    shared = set.intersection(*(set(points) for points in unmasked))
+    validation = None
+    if shared:
+        latest = max(shared)
+        validation = (latest, statistics.fmean(points[latest] for points in unmasked))
+    first = evals[0]
+    eval_s = None
+    if first:
+        latest = max(s for s, *_ in first)
+        eval_s = sum(seconds for s, _, _, seconds in first if s == latest)
+    state = FINISHED if finished else AT_CAP if at_cap else TRAINING if any(logs) else NOT_STARTED
+    curves = [
+        {"task": task, "cell": cell.label, "curve": [[s, mask_p, rate] for s, mask_p, rate, _ in points]}
+        for points in evals
+        if points
+    ]
+    return CellStatus(task, cell, state, step, target, validation, min(rates) if rates else None, eval_s, curves)
+
+
+def grid_status(config: ReproduceConfig) -> list[CellStatus]:
+    """Every (task, cell) of the grid, in the grid's order."""
+    decision = Path(config.results_dir) / config.name / "budget.json"
+    cap = config.budget.cap if config.budget else 0
+    if config.budget and decision.exists():
+        cap = max(cap, json.loads(decision.read_text())["cap"])  # a cap doubled by an earlier sitting
+    return [cell_status(config, task, cell, cap) for task in config.tasks for cell in config.cells]
+
+
+def hours_left(status: CellStatus, cells: list[CellStatus], config: ReproduceConfig) -> float | None:
+    """One job's hours to bring the cell to its target; None where no run has shown a rate."""
+    if status.state in (FINISHED, AT_CAP):
+        return 0.0
+    alike = [c for c in cells if c.family == status.family and c.steps_per_s and c.eval_s]
+    rate = status.steps_per_s or (statistics.median(c.steps_per_s for c in alike) if alike else None)
+    eval_s = status.eval_s or (statistics.median(c.eval_s for c in alike) if alike else None)
+    if rate is None or eval_s is None:
+        return None
+    every = config.budget.every if config.budget else config.train.eval_every
+    seconds = (status.target - status.step) / rate + (status.target // every - status.step // every) * eval_s
+    together = config.stack_seeds and not config.timed  # one job trains all the cell's seeds
+    return seconds / 3600 * (1 if together else len(config.seeds))
+
+
+def status_markdown(config: ReproduceConfig, cells: list[CellStatus]) -> str:
+    lines = [
+        f"{config.name}: {sum(c.state == FINISHED for c in cells)} of {len(cells)} cells finished, "
+        f"seeds {config.seeds}",
+        "",
+        "| task | cell | state | step | of | validation success (seeds' mean, at step) | hours left |",
+        "|---|---|---|---:|---:|---:|---:|",
+    ]
+    left = [hours_left(c, cells, config) for c in cells]
+    for c, hours in zip(cells, left, strict=True):
+        validation = f"{100 * c.validation[1]:.1f} % ({c.validation[0]:,})" if c.validation else ""
+        lines.append(
+            f"| {c.task} | {c.cell.label} | {c.state} | {c.step:,} | {c.target:,} | {validation} | "
+            f"{'?' if hours is None else f'{hours:.1f}'} |"
+        )
+    known = [h for h in left if h is not None]
+    unknown = len(left) - len(known)
+    total = f"about {sum(known):.1f} h of one job's time left"
+    if unknown:
+        total += f", and {unknown} cell{'s' if unknown > 1 else ''} with no rate to go by"
+    if config.budget:
+        total += " (to the cap; the test at the budget comes after)"
+    return "\n".join(lines + ["", total + "; with --jobs N, about 1/N of it."]) + "\n"
+
+
+def plot_status(cells: list[CellStatus], path: Path) -> bool:
+    """The seeds' mean validation curves so far, one panel per task; False when there are none."""
+    curves = [curve for c in cells for curve in c.curves]
+    if not curves:
+        return False
+    plot_curves(curves, path)
+    return True

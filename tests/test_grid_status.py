@@ -1,0 +1,99 @@
+"""`murm status`: where a grid stands, read from its folders while it runs."""
+
+import sys
+from pathlib import Path
+
+import yaml
+
+from lerobot_murm.checkpointing import append_rows
+from lerobot_murm.training.run_folder import EVAL_COLUMNS, LOG_COLUMNS
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run_command
+
+MURM = Path(sys.executable).parent / "murm"
+
+GRID = {
+    "name": "status_grid",
+    "tasks": ["place_in_box"],
+    "seeds": [0, 1],
+    "budget": {"cap": 40_000, "every": 10_000, "episodes": 2},
+    "cells": [
+        {"method": "single", "cameras": ["global"]},
+        {"method": "single", "cameras": ["adjacent"]},
+        {"method": "separated_q", "cameras": ["global", "adjacent"]},
+    ],
+}
+
+
+def write_run(run: Path, steps: list[int], successes: list[float], rate: float, eval_s: float) -> None:
+    """A run folder as the trainer leaves it mid-training (its own row writers)."""
+    run.mkdir(parents=True)
+    logged = [dict.fromkeys(LOG_COLUMNS, 0.5) | {"step": s, "steps_per_s": rate} for s in steps]
+    append_rows(run / "log.csv", LOG_COLUMNS, logged)
+    points = [
+        {
+            "step": s,
+            "mask_p": 0.0,
+            "success_rate": r,
+            "episodes": 2,
+            "seconds": eval_s,
+            "split": "validation",
+            "mask_mode": "paper",
+        }
+        for s, r in zip(steps, successes, strict=True)
+    ]
+    append_rows(run / "eval.csv", EVAL_COLUMNS, points)
+
+
+def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_grid(tmp_path):
+    config = tmp_path / "grid.yaml"
+    config.write_text(yaml.safe_dump(GRID))
+    runs = tmp_path / "work" / "runs" / "status_grid" / "place_in_box"
+    write_run(runs / "single-global" / "seed0", [10_000, 20_000], [0.5, 1.0], rate=2.0, eval_s=900.0)
+    write_run(runs / "single-global" / "seed1", [10_000, 20_000], [0.0, 0.5], rate=2.0, eval_s=900.0)
+    with (runs / "single-global" / "seed1" / "log.csv").open("a") as f:
+        f.write("30000,0.4")  # the trainer is writing this row right now: not read
+    args = [
+        MURM,
+        "status",
+        "--config",
+        config,
+        f"--work_dir={tmp_path / 'work'}",
+        f"--results_dir={tmp_path / 'results'}",
+        "--plot",
+        tmp_path / "curves.png",
+    ]
+    out = run_command(args, tmp_path)
+    rows = {
+        line.split("|")[2].strip(): [c.strip() for c in line.split("|")[3:-1]]
+        for line in out.splitlines()
+        if line.startswith("| place_in_box")
+    }
+    # 20,000 of 40,000 updates at 2 updates/s, and two validation points of 900 s still to come: 3.3 h
+    assert rows["single-global"] == ["training", "20,000", "40,000", "75.0 % (20,000)", "3.3"]
+    # costed like the started single-view cell (6.6 h); no single-view rate for separated Q
+    assert rows["single-adjacent"] == ["not started", "0", "40,000", "", "6.6"]
+    assert rows["separated_q-global+adjacent"][0] == "not started" and rows["separated_q-global+adjacent"][-1] == "?"
+    assert "0 of 3 cells finished" in out and "1 cell with no rate to go by" in out
+    assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):
+    config = tmp_path / "grid.yaml"
+    config.write_text(yaml.safe_dump(GRID))
+    out = run_command(
+        [
+            MURM,
+            "status",
+            "--config",
+            config,
+            f"--work_dir={tmp_path / 'work'}",
+            f"--results_dir={tmp_path / 'results'}",
+            "--plot",
+            tmp_path / "curves.png",
+        ],
+        tmp_path,
+    )
+    assert out.count("| not started |") == 3 and "3 cells with no rate to go by" in out
+    assert "no validation point yet" in out and not (tmp_path / "curves.png").exists()

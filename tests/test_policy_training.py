@@ -229,7 +229,8 @@ def test_seeds_trained_side_by_side_write_what_each_would_alone_and_a_lagging_se
         "eval_envs": 1,
     }
     config = train_config(tiny_pipeline, tmp_path, "separated_q", **fields)
-    policy = ["--policy.precision=fp32", "--policy.view_dropout=true"]
+    # view dropout and hindsight goals: the stack's sampler draws the masks and goals a lone run draws
+    policy = ["--policy.precision=fp32", "--policy.view_dropout=true", "--policy.hindsight_goals=true"]
     run_command(
         [BIN / "murm", "train", "--config", config, *policy, "--seed=1", f"--output_dir={tmp_path / 'alone'}"],
         cwd=tmp_path,
@@ -251,6 +252,7 @@ def test_seeds_trained_side_by_side_write_what_each_would_alone_and_a_lagging_se
         [BIN / "murm", "train", "--config", config, *policy, "--seeds=[0,1]", "--stack=true"], cwd=tmp_path
     )
     assert "resuming from step 4" in out and "training seeds 0, 1 side by side from step 4" in out
+    assert "murm train place_in_box separated_q-global+adjacent +view dropout +hindsight goals seeds 0,1: 100%" in out
 
     alone, stacked = tmp_path / "alone", tmp_path / "run" / "seed1"
     for name in ("log.csv", "eval.csv", "learning_curve.png", "final_eval.json", "train_config.yaml"):

@@ -316,6 +316,10 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
     updates = Updates(lambda: updater.step(replay.sample_stacked(config.batch_size, generators)), graph, device=device)
     # which run a bar is: `murm reproduce --jobs N` shows N of them at once
     label = f"{config.task} {policy_config.method}-{'+'.join(policy_config.cameras)}"
+    if policy_config.view_dropout and policy_config.method != "dropout":  # separated Q's variants
+        label += f" +{'actor' if policy_config.dropout_scope == 'actor' else 'view'} dropout"
+    if policy_config.hindsight_goals:  # the hindsight grid's two cells of one method train side by side
+        label += " +hindsight goals"
     seeds = f" seed{'s' if len(runs) > 1 else ''} {','.join(str(r.config.seed) for r in runs)}"
     loop = TrainingLoop(until, start=runs[0].step, desc=f"murm train {label}{seeds}")
     elapsed = lambda run: run.earlier_s + time.perf_counter() - sitting  # noqa: E731

@@ -46,25 +46,21 @@ def write_run(run: Path, steps: list[int], successes: list[float], rate: float, 
     append_rows(run / "eval.csv", EVAL_COLUMNS, points)
 
 
-def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_grid(tmp_path):
+def murm_status(tmp_path: Path) -> str:
+    """`murm status` of GRID on tmp_path's work and results folders, its figure to curves.png."""
     config = tmp_path / "grid.yaml"
     config.write_text(yaml.safe_dump(GRID))
+    folders = [f"--work_dir={tmp_path / 'work'}", f"--results_dir={tmp_path / 'results'}"]
+    return run_command([MURM, "status", "--config", config, *folders, "--plot", tmp_path / "curves.png"], tmp_path)
+
+
+def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_grid(tmp_path):
     runs = tmp_path / "work" / "runs" / "status_grid" / "place_in_box"
     write_run(runs / "single-global" / "seed0", [10_000, 20_000], [0.5, 1.0], rate=2.0, eval_s=900.0)
     write_run(runs / "single-global" / "seed1", [10_000, 20_000], [0.0, 0.5], rate=2.0, eval_s=900.0)
     with (runs / "single-global" / "seed1" / "log.csv").open("a") as f:
         f.write("30000,0.4")  # the trainer is writing this row right now: not read
-    args = [
-        MURM,
-        "status",
-        "--config",
-        config,
-        f"--work_dir={tmp_path / 'work'}",
-        f"--results_dir={tmp_path / 'results'}",
-        "--plot",
-        tmp_path / "curves.png",
-    ]
-    out = run_command(args, tmp_path)
+    out = murm_status(tmp_path)
     rows = {
         line.split("|")[2].strip(): [c.strip() for c in line.split("|")[3:-1]]
         for line in out.splitlines()
@@ -80,20 +76,6 @@ def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_gr
 
 
 def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):
-    config = tmp_path / "grid.yaml"
-    config.write_text(yaml.safe_dump(GRID))
-    out = run_command(
-        [
-            MURM,
-            "status",
-            "--config",
-            config,
-            f"--work_dir={tmp_path / 'work'}",
-            f"--results_dir={tmp_path / 'results'}",
-            "--plot",
-            tmp_path / "curves.png",
-        ],
-        tmp_path,
-    )
+    out = murm_status(tmp_path)
     assert out.count("| not started |") == 3 and "3 cells with no rate to go by" in out
     assert "no validation point yet" in out and not (tmp_path / "curves.png").exists()

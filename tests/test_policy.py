@@ -2,7 +2,10 @@
 camera masking, and the self-contained checkpoint."""
 
 import shutil
+import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from lerobot.configs import FeatureType, PolicyFeature
@@ -17,6 +20,10 @@ from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
 from lerobot_murm.policy.replay import replay_for_dataset
 from lerobot_murm.training.train import build_policy
 from lerobot_murm.vqvae.frames import episode_last_rows
+from lerobot_murm.vqvae.latent_cache import build_latent_cache
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run_command
 
 REPO = "local/place_in_box"
 
@@ -218,6 +225,26 @@ def test_hindsight_goals_replace_the_goal_images_by_each_episode_s_last_frame(ti
         torch.testing.assert_close(hindsight.latents[k], rendered.latents[k])
         torch.testing.assert_close(hindsight.goal_latents[k], rendered.latents[k][last])
         assert not torch.equal(hindsight.goal_latents[k], rendered.goal_latents[k])
+
+
+def test_the_goal_gap_script_measures_hindsight_goals_against_the_rendered_ones(tiny_pipeline, tmp_path):
+    """scripts/hindsight_goal_gap.py, the measure REPORT.md quotes for the hindsight grid: on the
+    tiny pipeline's six successful episodes, each camera's gap equals the caches' own."""
+    root, encoders = tiny_pipeline
+    script = Path(__file__).parents[1] / "scripts" / "hindsight_goal_gap.py"
+    args = [sys.executable, script, "--dataset", root, "--encoders", encoders / "global", encoders / "adjacent"]
+    out = run_command([*args, "--cache-dir", tmp_path], tmp_path)
+    rows = {
+        line.split("|")[1].strip(): line.split("|")[2:-1]
+        for line in out.splitlines()
+        if line.startswith("| ") and not line.startswith("| camera")
+    }
+    assert set(rows) == {"global", "adjacent"}
+    for camera, cells in rows.items():
+        cache = build_latent_cache(f"local/{root.name}", root, encoders / camera, tmp_path)
+        gap = ((cache.latents(episode_last_rows(cache.episode_index)) - cache.goal_latents()) ** 2).sum(-1)
+        assert cells[0].strip() == "6" and cells[2].strip() == "-"  # every episode succeeded
+        assert cells[1].strip() == f"{np.median(gap):.2f}, {np.quantile(gap, 0.9):.2f} (6)"
 
 
 def test_select_action_is_deterministic_and_within_the_action_box(policy):

@@ -216,6 +216,12 @@ def test_evaluation_acts_for_every_seed_in_one_forward_as_each_would_alone():
         policy.mask_generator.manual_seed(0)  # each seed draws its masks as it would alone
         alone = policy.select_action({key: value[4 * k : 4 * (k + 1)] for key, value in batch.items()})
         torch.testing.assert_close(together[4 * k : 4 * (k + 1)], alone)
+    # an evaluation encodes each episode's goal images once, at its reset: the very same actions
+    goals = policies[0].goal_state(batch)
+    without_goal_images = {image_key(c): batch[image_key(c)] for c in CAMERAS}
+    for policy in policies:
+        policy.mask_generator.manual_seed(0)
+    assert torch.equal(act_together(policies, without_goal_images, goals=goals), together)
 
 
 class FakeGraph:

@@ -182,20 +182,32 @@ class MurmPolicy(PreTrainedPolicy):
         present = torch.tensor([image_key(c) in batch for c in self.cameras])
         return self.masked_state(self.observation_latents(batch), mask_p, mask_mode, present)
 
-    def observation_latents(self, batch: dict[str, Tensor]) -> Tensor:
+    def observation_latents(self, batch: dict[str, Tensor], goals: Tensor | None = None) -> Tensor:
         """(B, cameras, 2 * latent) raw (z, zg) latents of an observation: the encoders' work,
         which the seeds of a stack (one set of encoders) do once for all their episodes. A
-        camera missing from the observation has z = 0 (`masked_state` hides it)."""
-        frames = [batch[image_key(c)] for c in self.cameras if image_key(c) in batch]
-        if not frames:
-            raise ValueError(f"the observation has no image of any of the policy's cameras {self.cameras}")
-        rows, device = frames[0].shape[:-3], frames[0].device
+        camera missing from the observation has z = 0 (`masked_state` hides it). `goals`:
+        the rows' goal latents from `goal_state`, already encoded, instead of the batch's goals."""
+        self._rows(batch)  # an observation without any of the cameras is refused
+        if goals is None:
+            goals = self.goal_state(batch)
         pairs = []
-        for c in self.cameras:
-            goal = self.goal_latents(c, batch, rows, device)
+        for k, c in enumerate(self.cameras):
+            goal = goals[..., k, :]
             z = self.encode(c, batch[image_key(c)]) if image_key(c) in batch else torch.zeros_like(goal)
             pairs.append(torch.cat([z, goal], dim=-1))
         return torch.stack(pairs, dim=1)
+
+    def goal_state(self, batch: dict[str, Tensor]) -> Tensor:
+        """(B, cameras, latent) goal latents of an observation (`goal_latents` per camera). A goal
+        stays for a whole episode, so an evaluation encodes it once, at the episode's reset."""
+        rows, device = self._rows(batch)
+        return torch.stack([self.goal_latents(c, batch, rows, device) for c in self.cameras], dim=-2)
+
+    def _rows(self, batch: dict[str, Tensor]) -> tuple[torch.Size, torch.device]:
+        frames = [batch[image_key(c)] for c in self.cameras if image_key(c) in batch]
+        if not frames:
+            raise ValueError(f"the observation has no image of any of the policy's cameras {self.cameras}")
+        return frames[0].shape[:-3], frames[0].device
 
     def goal_latents(self, camera: str, batch: dict[str, Tensor], rows: torch.Size, device: torch.device) -> Tensor:
         """(*rows, latent) goal latents of `camera`: the observation's goal images where it has

@@ -67,14 +67,18 @@ def _make_worker_env(env_id: str, kwargs: dict, trainer_pid: int) -> gym.Env:
 
 
 def act_together(
-    policies: list[MurmPolicy], batch: dict[str, torch.Tensor], actors: tuple[dict, dict] | None = None
+    policies: list[MurmPolicy],
+    batch: dict[str, torch.Tensor],
+    actors: tuple[dict, dict] | None = None,
+    goals: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Deterministic actions of policies that share their encoders, for equal consecutive groups
     of the batch's rows (group k: policy k, masked by policy k's own settings and draws). One
     encoder pass for all rows; the actors run as one batched network (`actors`, their weights
-    stacked by `torch.func.stack_module_state`; made here if not given)."""
+    stacked by `torch.func.stack_module_state`; made here if not given). `goals`: the rows' goal
+    latents (`MurmPolicy.goal_state`), encoded once per episode; else the batch's goal images."""
     seeds = len(policies)
-    latents = policies[0].observation_latents(batch).unflatten(0, (seeds, -1))
+    latents = policies[0].observation_latents(batch, goals).unflatten(0, (seeds, -1))
     states = torch.stack(
         [
             p.masked_state(z, p.config.eval_mask_p, p.config.eval_mask_mode)
@@ -118,12 +122,14 @@ class Evaluator:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _batch(self, observation: dict, device: torch.device) -> dict[str, torch.Tensor]:
-        """Env observations -> the policy's input, as LeRobot's preprocessing makes it (float in [0, 1])."""
+    def _batch(self, observation: dict, device: torch.device, goals: bool = True) -> dict[str, torch.Tensor]:
+        """Env observations -> the policy's input, as LeRobot's preprocessing makes it (float in
+        [0, 1]); `goals` False leaves the goal images out (their latents are known)."""
         pixels = observation["pixels"]
         batch = {}
         for camera in self.cameras:
-            for key, feature in ((camera, image_key(camera)), (goal_key(camera), goal_image_key(camera))):
+            keys = [(camera, image_key(camera))] + [(goal_key(camera), goal_image_key(camera))] * goals
+            for key, feature in keys:
                 images = torch.from_numpy(np.ascontiguousarray(pixels[key])).to(device)
                 batch[feature] = images.permute(0, 3, 1, 2).float().div_(255.0)
         return batch
@@ -153,8 +159,12 @@ class Evaluator:
                 padded = chunk + [chunk[-1]] * (self.num_envs - len(chunk))  # idle envs repeat a seed
                 observation, _ = self.envs.reset(seed=padded * len(policies))
                 succeeded = np.zeros(self.num_envs * len(policies), bool)
+                # an episode's goal images stay as its reset rendered them (no episode ends early):
+                # encoded once here, not at every step (the same latents, bit for bit)
+                goals = policies[0].goal_state(self._batch(observation, device))
                 for _ in range(EPISODE_STEPS):
-                    action = act_together(policies, self._batch(observation, device), actors).cpu().numpy()
+                    batch = self._batch(observation, device, goals=False)
+                    action = act_together(policies, batch, actors, goals).cpu().numpy()
                     observation, _, _, _, info = self.envs.step(action)
                     succeeded |= np.asarray(info["is_success"], bool)
                 for k, group in enumerate(succeeded.reshape(len(policies), self.num_envs)):

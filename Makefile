@@ -2,7 +2,7 @@
 VENV := .venv
 STAMP := $(VENV)/.installed
 
-.PHONY: install run test test-fast lint bench tables
+.PHONY: install run test test-fast lint bench tables status
 
 $(STAMP): pyproject.toml scripts/install.sh
 	bash scripts/install.sh
@@ -40,6 +40,10 @@ JOBS := 2
 tables: $(STAMP)
 	for grid in $(GRIDS); do $(VENV)/bin/murm reproduce --config configs/reproduce/$$grid.yaml --jobs $(JOBS) || exit 1; done
 	$(VENV)/bin/murm report --readme README.md
+
+# Where each grid of the study stands and the hours it has left (reads only; beside a running `make tables`).
+status: $(STAMP)
+	for grid in $(GRIDS); do $(VENV)/bin/murm status --config configs/reproduce/$$grid.yaml || exit 1; echo; done
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_env.py

@@ -222,6 +222,9 @@ def _status(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.grid_status import grid_status, plot_status, status_markdown
 
     config = load_reproduce_config(args.config, args.overrides)
+    if config.prepare_only:
+        print(f"{config.name}: builds datasets and encoders only, no training run (murm reproduce says where it is)")
+        return
     cells = grid_status(config)
     print(status_markdown(config, cells), end="")
     if args.plot:

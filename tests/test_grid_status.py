@@ -46,10 +46,10 @@ def write_run(run: Path, steps: list[int], successes: list[float], rate: float, 
     append_rows(run / "eval.csv", EVAL_COLUMNS, points)
 
 
-def murm_status(tmp_path: Path) -> str:
-    """`murm status` of GRID on tmp_path's work and results folders, its figure to curves.png."""
+def murm_status(tmp_path: Path, grid: dict = GRID) -> str:
+    """`murm status` of `grid` on tmp_path's work and results folders, its figure to curves.png."""
     config = tmp_path / "grid.yaml"
-    config.write_text(yaml.safe_dump(GRID))
+    config.write_text(yaml.safe_dump(grid))
     folders = [f"--work_dir={tmp_path / 'work'}", f"--results_dir={tmp_path / 'results'}"]
     return run_command([MURM, "status", "--config", config, *folders, "--plot", tmp_path / "curves.png"], tmp_path)
 
@@ -79,3 +79,8 @@ def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):
     out = murm_status(tmp_path)
     assert out.count("| not started |") == 3 and "3 cells with no rate to go by" in out
     assert "no validation point yet" in out and not (tmp_path / "curves.png").exists()
+
+
+def test_status_of_a_grid_that_only_prepares_says_it_trains_nothing(tmp_path):
+    out = murm_status(tmp_path, GRID | {"prepare_only": True})
+    assert "no training run" in out and "| place_in_box" not in out

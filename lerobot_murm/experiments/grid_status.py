@@ -68,6 +68,8 @@ def _validation(rows: list[dict[str, str]]) -> list[tuple[int, float, float, flo
 
 
 def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) -> CellStatus:
+    """One cell's state, judged as the grid judges it: a stored result or curve counts only if
+    its recipe is the cell's (an earlier study's run of the same name does not)."""
     runs = [run_dir(config, task, cell, seed) for seed in config.seeds]
     target = cap if config.budget else config.cell_steps(cell)
     recipes = [run_recipe(config, task, cell, seed) for seed in config.seeds]

@@ -263,7 +263,10 @@ def test_a_stopped_grid_keeps_its_checkpoints_and_starts_no_queued_job(tmp_path,
         if stop == "Ctrl-C":
             os.killpg(driver.pid, signal.SIGINT)
             assert driver.wait(timeout=180) == 1
-            assert "finished cells are kept" in stderr.read_text().splitlines()[-1]
+            # the driver's last line (multiprocessing's resource tracker, a process of its own, may
+            # print its shutdown warning after it, in either order under load)
+            ours = [line for line in stderr.read_text().splitlines() if "resource_tracker" not in line]
+            assert "finished cells are kept" in ours[-1]
         else:
             driver.kill()
         deadline = time.monotonic() + 120

@@ -2,6 +2,7 @@
 
 import io
 import os
+import select
 import sys
 from pathlib import Path
 
@@ -32,6 +33,22 @@ def test_a_log_file_gets_whole_lines_not_carriage_returns():
     assert len(lines) == 2  # the start and the end: updates closer than a minute apart print nothing
 
 
+def read_all(leader: int) -> str:
+    """Everything written to a closed pseudo-terminal: a pty hands it over in as many reads as
+    it likes (one read got only the first of the bar's writes on a busy machine)."""
+    chunks = []
+    while select.select([leader], [], [], 5.0)[0]:
+        try:
+            chunk = os.read(leader, 4096)
+        except OSError:  # EIO: the follower is closed and everything was read
+            break
+        if not chunk:
+            break
+        chunks.append(chunk)
+    os.close(leader)
+    return b"".join(chunks).decode()
+
+
 def test_a_terminal_gets_tqdms_bar_in_place():
     leader, follower = os.openpty()
     with os.fdopen(follower, "w") as terminal:
@@ -39,8 +56,7 @@ def test_a_terminal_gets_tqdms_bar_in_place():
         assert type(bar) is tqdm
         bar.update(2)
         bar.close()
-    output = os.read(leader, 4096).decode()
-    os.close(leader)
+    output = read_all(leader)
     assert "\r" in output and "2/2" in output
 
 

@@ -3,7 +3,7 @@ step, latest validation success and the time left at the rates its runs have sho
 
 A study's grids run for days over many sittings; this is the look at them between sittings
 or beside a running one. It only reads: the run folders' `log.csv` and `eval.csv` (a row the
-trainer is writing at that moment is skipped, not misread), the grid's stored curves and
+trainer is writing at that moment is skipped, `read_run_csv`), the grid's stored curves and
 results, and its `budget.json`. Time left is one job's: training at the last logged rate plus
 the validation evaluations still to come at the seconds the last ones took; a cell not
 started yet is costed like a started cell of the same method and camera count, if any. A
@@ -12,7 +12,6 @@ budget grid's test at its budget, after every run reached the cap, is not counte
 
 from __future__ import annotations
 
-import csv
 import json
 import statistics
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ from lerobot_murm.experiments.artifacts import result_path, run_dir
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
 from lerobot_murm.experiments.results import plot_curves, read_result
 from lerobot_murm.experiments.reuse import budget_recipe, kept_as_finished, run_recipe, same_recipe
+from lerobot_murm.training.learning_curve import read_run_csv, validation_curve
 
 NOT_STARTED, TRAINING, AT_CAP, FINISHED = "not started", "training", "at the cap", "finished"
 
@@ -48,25 +48,6 @@ def _stored(path: Path) -> dict | None:
     return read_result(path) if path.exists() else None
 
 
-def read_rows(path: Path) -> list[dict[str, str]]:
-    """A CSV's complete rows; a last line still being written (no newline yet) is left out."""
-    if not path.exists():
-        return []
-    text = path.read_text()
-    if not text.endswith("\n"):
-        text = text[: text.rfind("\n") + 1]
-    return list(csv.DictReader(text.splitlines()))
-
-
-def _validation(rows: list[dict[str, str]]) -> list[tuple[int, float, float, float]]:
-    """(step, mask_p, success, seconds) of a run's validation evaluations under the paper's masking."""
-    return [
-        (int(float(r["step"])), float(r["mask_p"]), float(r["success_rate"]), float(r["seconds"]))
-        for r in rows
-        if r.get("split") == "validation" and r.get("mask_mode") == "paper"
-    ]
-
-
 def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) -> CellStatus:
     """One cell's state, judged as the grid judges it: a stored result or curve counts only if
     its recipe is the cell's (an earlier study's run of the same name does not)."""
@@ -90,13 +71,13 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
         c is not None and same_recipe(c.get("recipe"), rc) and c["steps"] >= cap
         for c, rc in zip(stored_curves, recipes, strict=True)
     )
-    logs = [read_rows(run / "log.csv") for run in runs]
-    evals = [_validation(read_rows(run / "eval.csv")) for run in runs]
-    step = min((int(float(rows[-1]["step"])) if rows else 0) for rows in logs)
+    logs = [read_run_csv(run / "log.csv") for run in runs]
+    evals = [validation_curve(read_run_csv(run / "eval.csv")) for run in runs]
+    step = min((int(rows[-1]["step"]) if rows else 0) for rows in logs)
     if finished or at_cap:
         step = max(step, target)
-    rates = [float(rows[-1]["steps_per_s"]) for rows in logs if rows]
-    unmasked = [{s: rate for s, mask_p, rate, _ in points if mask_p == 0} for points in evals]
+    rates = [rows[-1]["steps_per_s"] for rows in logs if rows]
+    unmasked = [{int(r["step"]): r["success_rate"] for r in points if r["mask_p"] == 0} for points in evals]
     shared = set.intersection(*(set(points) for points in unmasked))
     validation = None
     if shared:
@@ -105,11 +86,11 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
     first = evals[0]
     eval_s = None
     if first:
-        latest = max(s for s, *_ in first)
-        eval_s = sum(seconds for s, _, _, seconds in first if s == latest)
+        latest = max(r["step"] for r in first)
+        eval_s = sum(r["seconds"] for r in first if r["step"] == latest)
     state = FINISHED if finished else AT_CAP if at_cap else TRAINING if any(logs) else NOT_STARTED
     curves = [
-        {"task": task, "cell": cell.label, "curve": [[s, mask_p, rate] for s, mask_p, rate, _ in points]}
+        {"task": task, "cell": cell.label, "curve": [[r["step"], r["mask_p"], r["success_rate"]] for r in points]}
         for points in evals
         if points
     ]

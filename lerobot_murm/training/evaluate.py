@@ -128,7 +128,9 @@ class Evaluator:
         pixels = observation["pixels"]
         batch = {}
         for camera in self.cameras:
-            keys = [(camera, image_key(camera))] + [(goal_key(camera), goal_image_key(camera))] * goals
+            keys = [(camera, image_key(camera))]
+            if goals:
+                keys.append((goal_key(camera), goal_image_key(camera)))
             for key, feature in keys:
                 images = torch.from_numpy(np.ascontiguousarray(pixels[key])).to(device)
                 batch[feature] = images.permute(0, 3, 1, 2).float().div_(255.0)

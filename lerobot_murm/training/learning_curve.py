@@ -9,13 +9,17 @@ from matplotlib.figure import Figure
 
 
 def read_run_csv(path: Path) -> list[dict[str, float | str]]:
-    """Rows of a run's CSV, numbers as floats (eval.csv's split and mask_mode stay text)."""
+    """Rows of a run's CSV, numbers as floats (eval.csv's split and mask_mode stay text). A last
+    line without its newline is a row the trainer is writing at this moment (`murm status`
+    reads beside a running grid): left out, not misread."""
     if not path.exists():
         return []
-    with path.open() as f:
-        return [
-            {k: v if k in ("split", "mask_mode") else float(v) for k, v in row.items()} for row in csv.DictReader(f)
-        ]
+    text = path.read_text()
+    complete = text[: text.rfind("\n") + 1]
+    return [
+        {k: v if k in ("split", "mask_mode") else float(v) for k, v in row.items()}
+        for row in csv.DictReader(complete.splitlines())
+    ]
 
 
 def validation_curve(eval_rows: list[dict]) -> list[dict]:

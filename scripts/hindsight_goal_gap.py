@@ -41,7 +41,7 @@ def main() -> None:
     for encoder in args.encoders:
         cache = build_latent_cache(repo_id, args.dataset, encoder, args.cache_dir)
         if cache.hindsight:
-            raise ValueError(f"{args.dataset} has no goal images to measure hindsight goals against")
+            raise SystemExit(f"{args.dataset} has no goal images to measure hindsight goals against")
         episodes = cache.episode_index
         last = episode_last_rows(episodes)
         first = np.flatnonzero(np.insert(episodes[1:] != episodes[:-1], 0, True))

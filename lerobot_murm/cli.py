@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
-from collections.abc import Callable
-from contextlib import ExitStack, nullcontext
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager, nullcontext
 from pathlib import Path
 
 from lerobot_murm.library_logs import held_back
@@ -189,6 +190,25 @@ def _train(args: argparse.Namespace) -> None:
         print(f"checkpoint: {summary['checkpoint']}")
 
 
+@contextmanager
+def _sigterm_as_ctrl_c() -> Iterator[None]:
+    """SIGTERM (`kill`, a scheduler's preemption) stops a grid's driver as Ctrl-C does: its
+    jobs save their checkpoints, its pool closes and it says where it stopped. Left to its
+    default, SIGTERM ended the driver at once, silently, and multiprocessing's resource
+    tracker then reported the pool's semaphores as leaked. A second SIGTERM is ignored while
+    the jobs save (kill -9 still ends everything; the jobs then stop with their driver)."""
+
+    def interrupt(*_: object) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _reproduce(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
     from lerobot_murm.experiments.executors import make_executor
@@ -206,14 +226,17 @@ def _reproduce(args: argparse.Namespace) -> None:
     executor = make_executor(
         args.executor, args.jobs, args.address, args.cpus_per_task, args.gpus_per_task, args.shard_episodes
     )  # a bad flag: ValueError, one line
-    try:
-        out = reproduce(config, executor)
-    except TrainingInterrupted as stop:
-        raise TrainingInterrupted(f"{stop}; finished cells are kept") from None
-    except KeyboardInterrupt:  # the driver of --jobs / --executor ray; its jobs save their checkpoints
-        raise TrainingInterrupted("stopped; finished cells are kept, run the same command again to resume") from None
-    finally:
-        executor.close()
+    with _sigterm_as_ctrl_c():
+        try:
+            out = reproduce(config, executor)
+        except TrainingInterrupted as stop:
+            raise TrainingInterrupted(f"{stop}; finished cells are kept") from None
+        except KeyboardInterrupt:  # the driver of --jobs / --executor ray; its jobs save their checkpoints
+            raise TrainingInterrupted(
+                "stopped; finished cells are kept, run the same command again to resume"
+            ) from None
+        finally:
+            executor.close()
     print(f"tables and figures: {out}")
 
 

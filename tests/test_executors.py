@@ -220,12 +220,13 @@ def _processes_with(marker: str) -> list[int]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("stop", ["kill -9 the driver", "Ctrl-C"])
+@pytest.mark.parametrize("stop", ["kill -9 the driver", "Ctrl-C", "SIGTERM"])
 def test_a_stopped_grid_keeps_its_checkpoints_and_starts_no_queued_job(tmp_path, stop):
-    """`murm reproduce --jobs 2` stopped mid-training, by kill -9 of the driver or by Ctrl-C
-    (SIGINT to the whole process group): each run saves its checkpoint at its next step, no
-    process outlives the stop, and the jobs still queued behind the two running ones never
-    start."""
+    """`murm reproduce --jobs 2` stopped mid-training, by kill -9 of the driver, by Ctrl-C
+    (SIGINT to the whole process group) or by SIGTERM to the group (`kill`, a scheduler's
+    preemption): each run saves its checkpoint at its next step, no process outlives the
+    stop, and the jobs still queued behind the two running ones never start. Ctrl-C and
+    SIGTERM end the driver last, with its one line, once its jobs have saved."""
     import torch
 
     name, value = "MURM_TEST_DRIVER", tmp_path.name
@@ -253,6 +254,13 @@ def test_a_stopped_grid_keeps_its_checkpoints_and_starts_no_queued_job(tmp_path,
             start_new_session=True,  # its own process group, as a terminal gives a command
         )
     logs = lambda: sorted((tmp_path / "work" / "runs").glob("smoke/*/*/seed*/log.csv"))  # noqa: E731
+
+    def assert_saved() -> None:
+        for log in logs():
+            last_logged = int(log.read_text().splitlines()[-1].split(",")[0])
+            state = torch.load(log.parent / "checkpoints" / "last" / "training_state.pt", weights_only=True)
+            assert state["step"] >= last_logged > 0, log  # saved when the run stopped
+
     try:
         deadline = time.monotonic() + 600
         while time.monotonic() < deadline and driver.poll() is None:
@@ -260,13 +268,16 @@ def test_a_stopped_grid_keeps_its_checkpoints_and_starts_no_queued_job(tmp_path,
                 break  # both jobs are training
             time.sleep(0.2)
         assert driver.poll() is None, "the driver ended before both runs were training"
-        if stop == "Ctrl-C":
-            os.killpg(driver.pid, signal.SIGINT)
+        if stop in ("Ctrl-C", "SIGTERM"):
+            os.killpg(driver.pid, signal.SIGINT if stop == "Ctrl-C" else signal.SIGTERM)
             assert driver.wait(timeout=180) == 1
             # the driver's last line (multiprocessing's resource tracker, a process of its own, may
             # print its shutdown warning after it, in either order under load)
             ours = [line for line in stderr.read_text().splitlines() if "resource_tracker" not in line]
             assert "finished cells are kept" in ours[-1]
+            assert_saved()  # before the driver ended, not after
+            if stop == "SIGTERM":  # SIGTERM once killed the driver outright and leaked its pool's semaphores
+                assert "leaked" not in stderr.read_text()
         else:
             driver.kill()
         deadline = time.monotonic() + 120
@@ -277,7 +288,4 @@ def test_a_stopped_grid_keeps_its_checkpoints_and_starts_no_queued_job(tmp_path,
         for pid in _processes_with(marker):
             os.kill(pid, signal.SIGKILL)
     assert len(logs()) == 2, logs()  # the jobs queued behind them never started
-    for log in logs():
-        last_logged = int(log.read_text().splitlines()[-1].split(",")[0])
-        state = torch.load(log.parent / "checkpoints" / "last" / "training_state.pt", weights_only=True)
-        assert state["step"] >= last_logged > 0  # saved when the run stopped
+    assert_saved()

@@ -97,8 +97,11 @@ class ProcessExecutor:
     oversubscription); dividing the cores between them lets their throughputs add up.
     Each run keeps its `train.eval_envs` simulator processes: the camera-masking draws
     depend on how evaluation episodes are batched, so resizing them would change results.
-    A stop (Ctrl-C, which reaches every process of the group, or one job stopped or failed)
-    stops every running job at its next step with its checkpoint, and starts no queued one.
+    A stop (Ctrl-C or SIGTERM, which reach every process of the group, or one job stopped or
+    failed) stops every running job at its next step with its checkpoint, and starts no
+    queued one; the driver returns once they have saved. The job processes are the driver's
+    own children ("spawn"): under a forkserver, a SIGTERM to the group killed the forkserver,
+    the pool took that for dead workers and let the driver exit while its jobs still saved.
     """
 
     shard_episodes: int | None = None
@@ -107,7 +110,7 @@ class ProcessExecutor:
         if jobs < 1:
             raise ValueError(f"--jobs must be at least 1, got {jobs}")
         self.threads = threads_per_job(jobs, cores)
-        context = get_context("forkserver")
+        context = get_context("spawn")
         self.stop = context.Event()  # set when the grid stops: every job process stops its job
         self.pool = ProcessPoolExecutor(
             jobs, mp_context=context, initializer=_start_job_process, initargs=(self.threads, self.stop)

@@ -284,3 +284,31 @@ def test_table7_the_fully_noisy_cell_is_the_1000_demonstrations_one(tmp_path):
     demonstrations_table(tmp_path, demos | {"demos1000": 40.0, "noisy0": 70.0, "noisy25": 25.0, "noisy50": 30.0})
     found = verdict_of(tmp_path, claim)
     assert found.verdict == "does not hold (2 of 2 resolved)" and "noisy100 40 ± 4" in found.evidence
+
+
+def test_the_hindsight_grid_reports_each_cell_beside_its_rendered_goal_twin(tmp_path):
+    results = tmp_path / "results"
+    sep = "separated_q+actor_dropout-global+adjacent"
+    write_table(
+        results,
+        "hindsight",
+        [
+            ("place_in_box", "single-global", 0.0, 85.0, 3.0, 3),
+            ("place_in_box", "single-global-hindsight", 0.0, 72.0, 4.0, 3),  # 13 points < 2 x 2.9
+            ("place_in_box", "single-global", 0.5, 0.0, 0.0, 3),
+            ("place_in_box", "single-global-hindsight", 0.5, 1.0, 1.0, 3),  # both at the floor
+            ("place_in_box", sep, 0.0, 60.0, 10.0, 3),
+            ("place_in_box", f"{sep}-hindsight", 0.0, 55.0, 12.0, 3),  # 5 points, within 2 x 9.0
+        ],
+    )
+    shutil.copy(REPO / "configs/reproduce/hindsight.yaml", results / "hindsight/config.yaml")
+    report = write_report(results, tmp_path / "REPORT.md").read_text()
+    assert "Hindsight goals against the rendered goal images" in report
+    assert "| place_in_box | single-global | 0 % | 85 ± 3 | 72 ± 4 | -13 | clearly worse |" in report
+    assert "| place_in_box | single-global | 50 % | 0 ± 0 | 1 ± 1 | +1 | not resolved (both under 5 %) |" in report
+    assert f"| place_in_box | {sep} | 0 % | 60 ± 10 | 55 ± 12 | -5 | no clear difference |" in report
+    # a grid without hindsight cells has no such section
+    table4(results, dict.fromkeys(TASKS, 31.0))
+    shutil.copy(REPO / "configs/reproduce/table4.yaml", results / "table4/config.yaml")
+    report = write_report(results, tmp_path / "REPORT.md").read_text()
+    assert report.count("Hindsight goals against the rendered goal images") == 1

@@ -435,3 +435,35 @@ def claims_table(results_dir: Path, rules: bool = True) -> str:
             + DEFINITIONS
         )
     return text
+
+
+HINDSIGHT = "-hindsight"  # the label suffix of a cell trained on hindsight goals (configs/reproduce/hindsight.yaml)
+
+
+def goal_source_table(results_dir: Path, grid: str) -> str:
+    """Markdown: each cell of `grid` trained on hindsight goals beside the same cell trained on
+    the rendered goal images, per task and masking level, judged by `compare` (issue 44's
+    rule, fixed in REPORT.md's protocol before its runs); "" when the grid has no such pair."""
+    tables = Tables(results_dir)
+    lines = []
+    for (name, task, cell, mask_p), hindsight in tables.cells.items():
+        rendered = tables.get(grid, task, cell.replace(HINDSIGHT, ""), mask_p)
+        if name != grid or HINDSIGHT not in cell or rendered is None:
+            continue
+        if hindsight.mean < FLOOR_PERCENT and rendered.mean < FLOOR_PERCENT:
+            verdict = "not resolved (both under 5 %)"
+        else:
+            verdict = {1: "clearly better", -1: "clearly worse", None: "no clear difference"}[
+                compare(hindsight, rendered)
+            ]
+        lines.append(
+            f"| {task} | {cell.replace(HINDSIGHT, '')} | {100 * mask_p:.0f} % | {rendered.text()} | "
+            f"{hindsight.text()} | {hindsight.mean - rendered.mean:+.0f} | {verdict} |"
+        )
+    if not lines:
+        return ""
+    header = (
+        "| task | cell | masking | rendered goals | hindsight goals | difference | hindsight against rendered |\n"
+        "|---|---|---:|---:|---:|---:|---|\n"
+    )
+    return header + "\n".join(lines) + "\n"

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from lerobot_murm.experiments.claims import claims_table
+from lerobot_murm.experiments.claims import claims_table, goal_source_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.flattening import flattening_table
 from lerobot_murm.experiments.paper import PAPER_TABLES, TABLE1_TIME, TABLE2_SPREAD, TABLE5, TASKS
@@ -294,6 +294,13 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
                 read_table(v1) if (v1 := results_dir / "v1" / f"{results.name}.csv").exists() else None,
             )
             + (f"\n![ours beside the paper]({where / 'vs_paper.png'})\n" if against_paper else "")
+            + (
+                f"\nHindsight goals against the rendered goal images, the same cell and masking level "
+                f"(clearly better or worse: by more than two standard errors of the difference; the rule "
+                f"in the protocol above):\n\n{goals}"
+                if (goals := goal_source_table(results_dir, results.name))
+                else ""
+            )
             + (f"\nTraining time (Table 5):\n\n{time_table(runs, TABLE5)}" if results.name == "table5" else "")
             + (
                 f"\nTraining time (Table 1's time column):\n\n{time_table(runs, TABLE1_TIME, 'single-global-128')}"

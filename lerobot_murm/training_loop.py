@@ -88,6 +88,11 @@ class TrainingLoop:
         self._progress.set_postfix(refresh=False, **values)
 
     @property
+    def stop_requested(self) -> bool:
+        """A stop was asked for (work between steps, such as an evaluation, may end early)."""
+        return self._stop.requested
+
+    @property
     def finished(self) -> bool:
         return self.step >= self.total
 

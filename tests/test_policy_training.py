@@ -186,6 +186,64 @@ def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoi
     assert state["step"] >= 2
 
 
+def test_a_stop_during_a_validation_ends_it_and_the_resumed_run_validates_that_step_first(tiny_pipeline, tmp_path):
+    """SIGTERM (or Ctrl-C) while a run evaluates its validation episodes: the evaluation ends
+    at its next episode instead of running to its end, the step's checkpoint is already
+    written, and the resumed run evaluates that step before it trains on. What it writes
+    equals an unbroken run's."""
+    fields = {
+        "steps": 6,
+        "batch_size": 8,
+        "log_every": 3,
+        "eval_every": 3,
+        "eval_episodes": 20,  # one at a time, about 10 s: the stop comes long before the 20th
+        "final_eval_episodes": 2,
+        "eval_envs": 1,
+    }
+    config = train_config(tiny_pipeline, tmp_path, "concat", **fields)
+    unbroken = tmp_path / "unbroken"
+    run_command([BIN / "murm", "train", "--config", config, f"--output_dir={unbroken}"], cwd=tmp_path)
+
+    trainer = subprocess.Popen(
+        [str(BIN / "murm"), "train", "--config", str(config)],
+        cwd=tmp_path,
+        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    log = tmp_path / "run" / "log.csv"
+    try:  # step 3 is logged just before its checkpoint and validation
+        while trainer.poll() is None and not (log.exists() and "\n3," in log.read_text()):
+            time.sleep(0.05)
+        assert trainer.poll() is None, "the run ended before it could be stopped"
+        os.killpg(trainer.pid, signal.SIGTERM)
+        _, stderr = trainer.communicate(timeout=300)
+    finally:
+        if trainer.poll() is None:
+            os.killpg(trainer.pid, signal.SIGKILL)
+    assert trainer.returncode == 1 and "stopped at step 3" in stderr, stderr[-3000:]
+    state = torch.load(tmp_path / "run" / "checkpoints" / "last" / "training_state.pt", weights_only=True)
+    assert state["step"] == 3
+    eval_csv = tmp_path / "run" / "eval.csv"
+    assert not eval_csv.exists() or "\n3," not in eval_csv.read_text()  # the cut evaluation wrote nothing
+
+    out = run_command([BIN / "murm", "train", "--config", config], cwd=tmp_path)
+    assert "resuming from step 3" in out
+
+    def outcomes(run_dir: Path) -> list[tuple]:
+        with (run_dir / "eval.csv").open() as f:
+            return [(r["step"], r["mask_p"], r["split"], r["episodes"], r["success_rate"]) for r in csv.DictReader(f)]
+
+    assert outcomes(tmp_path / "run") == outcomes(unbroken)
+    assert [r[:3] for r in outcomes(unbroken)] == [
+        ("3", "0.0", "validation"),
+        ("6", "0.0", "validation"),
+        ("6", "0.0", "test"),
+    ]
+
+
 def test_the_evaluator_leaves_the_callers_stop_signals_alone():
     """Gymnasium builds one simulator in the calling process to read the spaces; only the
     workers may ignore Ctrl-C and SIGTERM, or a later stop (encoder training) is lost."""
@@ -260,6 +318,11 @@ def test_seeds_trained_side_by_side_write_what_each_would_alone_and_a_lagging_se
     with (alone / "log.csv").open() as f, (stacked / "log.csv").open() as g:
         lone_rows, stacked_rows = list(csv.DictReader(f)), list(csv.DictReader(g))
     assert [r["step"] for r in stacked_rows] == [str(s) for s in range(1, 9)]
+    # the seed that trained alone to step 4 before it caught up still has its validation point there
+    with (alone / "eval.csv").open() as f, (stacked / "eval.csv").open() as g:
+        assert [(r["step"], r["split"]) for r in csv.DictReader(g)] == [
+            (r["step"], r["split"]) for r in csv.DictReader(f)
+        ]
     for column in ("value_loss", "critic_loss", "actor_loss"):  # the first update's losses: the same batch and weights
         assert float(stacked_rows[0][column]) == pytest.approx(float(lone_rows[0][column]), rel=1e-5)
     checkpoint = Path(json.loads((stacked / "final_eval.json").read_text())["checkpoint"])

@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -41,6 +42,10 @@ class EvalResult:
 
     def __post_init__(self) -> None:
         self.success_rate = float(np.mean(self.successes)) if self.successes else 0.0
+
+
+class EvaluationStopped(Exception):
+    """A stop was asked for during an evaluation; its episodes so far are dropped."""
 
 
 VALIDATION_SEED = 200_000  # learning curves and every choice (hyperparameters, update counts, variants)
@@ -138,10 +143,17 @@ class Evaluator:
 
     @torch.no_grad()
     def evaluate(
-        self, policies: list[MurmPolicy], seeds: list[int], mask_p: float = 0.0, mask_mode: str = "paper"
+        self,
+        policies: list[MurmPolicy],
+        seeds: list[int],
+        mask_p: float = 0.0,
+        mask_mode: str = "paper",
+        stop: Callable[[], bool] | None = None,
     ) -> list[EvalResult]:
         """Each policy's success on the episodes `seeds`, as if it were evaluated alone; the
-        seconds are those of the whole evaluation, which they share."""
+        seconds are those of the whole evaluation, which they share. `stop` is asked before
+        each batch of episodes: if it says so, `EvaluationStopped` (a trainer's Ctrl-C or
+        SIGTERM then takes seconds, not the minutes an evaluation of hundreds of episodes takes)."""
         if len(policies) != self.policies:
             raise ValueError(f"this evaluator runs {self.policies} policies at a time, not {len(policies)}")
         start = time.perf_counter()
@@ -157,6 +169,8 @@ class Evaluator:
         successes: list[list[bool]] = [[] for _ in policies]
         try:
             for first in range(0, len(seeds), self.num_envs):
+                if stop is not None and stop():
+                    raise EvaluationStopped
                 chunk = seeds[first : first + self.num_envs]
                 padded = chunk + [chunk[-1]] * (self.num_envs - len(chunk))  # idle envs repeat a seed
                 observation, _ = self.envs.reset(seed=padded * len(policies))

@@ -8,7 +8,8 @@ target update as under `lerobot-train`; checkpoints are LeRobot's format
 
 Output folder: `train_config.yaml`, `log.csv` (losses), `eval.csv` (success rate per
 evaluation and masking level), `learning_curve.png`, `checkpoints/last/` (policy +
-`training_state.pt`, written at every evaluation so an interrupted run resumes there),
+`training_state.pt`, written before every evaluation so an interrupted run resumes there,
+with the evaluation a stop cut short first),
 and `final_eval.json` (`run_folder.py` writes and reads these files).
 
 With `seeds: [a, b, ...]` the seeds train side by side as one stacked model
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass, field, replace
 from enum import Enum
@@ -44,7 +46,13 @@ from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
 from lerobot_murm.training.cuda_graph import CudaGraph, Updates, make_capturable
-from lerobot_murm.training.evaluate import TEST_SEED, VALIDATION_SEED, Evaluator, evaluation_seeds
+from lerobot_murm.training.evaluate import (
+    TEST_SEED,
+    VALIDATION_SEED,
+    EvaluationStopped,
+    Evaluator,
+    evaluation_seeds,
+)
 from lerobot_murm.training.learning_curve import plot_learning_curve, read_run_csv
 from lerobot_murm.training.run_folder import (
     EVAL_COLUMNS,
@@ -335,51 +343,77 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
     with Evaluator(config.task, policy_config.cameras, image_size, config.eval_envs, len(runs)) as evaluator:
 
         def run_evaluation(at_step: int, eval_seeds: list[int], split: str, authors: bool = False) -> list[list[dict]]:
-            """Each seed's rows of eval.csv."""
+            """Each seed's rows of eval.csv; `EvaluationStopped` if a stop is asked for meanwhile."""
             return evaluation_rows(
-                evaluator, updater.write_back(), eval_seeds, config.eval_mask_p, authors, at_step, split
+                evaluator,
+                updater.write_back(),
+                eval_seeds,
+                config.eval_mask_p,
+                authors,
+                at_step,
+                split,
+                stop=lambda: loop.stop_requested,
             )
 
         seeds = evaluation_seeds(config.eval_episodes, config.validation_seed)
+
+        def validate(missing: list[SeedRun]) -> None:
+            """This step's validation point, for the runs `missing` it (the seeds evaluate
+            together; each run writes its own rows). The step's checkpoint is written first, so
+            a stop during the evaluation loses no training: the resumed run validates first."""
+            if config.keep_every and loop.step % config.keep_every == 0:
+                for run in runs:
+                    run.keep(loop.step)
+            rows = run_evaluation(loop.step, seeds, "validation")
+            for run, own in zip(runs, rows, strict=True):
+                if any(run is m for m in missing):
+                    append_rows(run.out / "eval.csv", EVAL_COLUMNS, own)
+                    plot_learning_curve(run.out)
+            loop.show(success=f"{rows[0][0]['success_rate']:.2f}")
+
         window_start, window_first = time.perf_counter(), loop.step
         with loop:
-            while loop.running():
-                updates()
-                loop.advance()
-                if loop.every(config.log_every) or loop.finished:
-                    means = updates.read().tolist()  # the only host synchronisation of the loop
-                    rate = (loop.step - window_first) / (time.perf_counter() - window_start)
-                    for run, values in zip(runs, means, strict=True):
-                        row = dict(zip(LOGGED, values, strict=True)) | {"step": loop.step, "steps_per_s": rate}
-                        append_rows(run.out / "log.csv", LOG_COLUMNS, [row])
-                    loop.show(critic=f"{means[0][1]:.3f}", q=f"{means[0][3]:.1f}")
-                    window_start, window_first = time.perf_counter(), loop.step
-                if loop.every(config.eval_every) and not loop.finished:
-                    rows = run_evaluation(loop.step, seeds, "validation")
-                    for run, own in zip(runs, rows, strict=True):
-                        append_rows(run.out / "eval.csv", EVAL_COLUMNS, own)
-                    loop.show(success=f"{rows[0][0]['success_rate']:.2f}")
-                    checkpoint()
-                    if config.keep_every and loop.step % config.keep_every == 0:
-                        for run in runs:
-                            run.keep(loop.step)
-                    for run in runs:
-                        plot_learning_curve(run.out)
-                    window_start = time.perf_counter()  # the window's rate leaves the evaluation out
+            try:
+                if missing := unvalidated(runs, loop.step):  # a stop cut this step's validation short
+                    validate(missing)
+                while loop.running():
+                    updates()
+                    loop.advance()
+                    if loop.every(config.log_every) or loop.finished:
+                        means = updates.read().tolist()  # the only host synchronisation of the loop
+                        rate = (loop.step - window_first) / (time.perf_counter() - window_start)
+                        for run, values in zip(runs, means, strict=True):
+                            row = dict(zip(LOGGED, values, strict=True)) | {"step": loop.step, "steps_per_s": rate}
+                            append_rows(run.out / "log.csv", LOG_COLUMNS, [row])
+                        loop.show(critic=f"{means[0][1]:.3f}", q=f"{means[0][3]:.1f}")
+                        window_start, window_first = time.perf_counter(), loop.step
+                    if loop.every(config.eval_every) and not loop.finished:
+                        checkpoint()
+                        validate(runs)
+                        window_start = time.perf_counter()  # the window's rate leaves the evaluation out
+            except EvaluationStopped:
+                pass  # checkpointed at this step, whose validation comes first when the run resumes
             checkpoint()
             if loop.interrupted:
                 raise TrainingInterrupted(f"stopped at step {loop.step}; run the same command again to resume")
             if until < config.steps:  # caught up with the seeds ahead: they all go on together
                 return
-            # inside the loop's stop handling: a stop request during the final evaluation waits for it
+            # a stop during the final evaluation ends it: the resumed run evaluates again
             validation_seeds = evaluation_seeds(config.final_eval_episodes, config.validation_seed)
-            final_validation = run_evaluation(loop.step, validation_seeds, "validation", config.eval_authors_masking)
             test_seeds = evaluation_seeds(config.final_eval_episodes, config.test_seed)
-            final = (
-                run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking)
-                if config.final_test
-                else [[] for _ in runs]
-            )
+            try:
+                final_validation = run_evaluation(
+                    loop.step, validation_seeds, "validation", config.eval_authors_masking
+                )
+                final = (
+                    run_evaluation(loop.step, test_seeds, "test", config.eval_authors_masking)
+                    if config.final_test
+                    else [[] for _ in runs]
+                )
+            except EvaluationStopped:
+                raise TrainingInterrupted(
+                    f"stopped at step {loop.step} in its final evaluation; run the same command again to finish it"
+                ) from None
             if config.keep_every:
                 for run in runs:
                     run.keep(loop.step)
@@ -403,6 +437,20 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
         write_atomic(run.out / "final_eval.json", (json.dumps(run.summary, indent=2) + "\n").encode())
 
 
+def unvalidated(runs: list[SeedRun], step: int) -> list[SeedRun]:
+    """The runs at an evaluation step before their last whose eval.csv has no validation point
+    there: a stop came during that evaluation, or the run caught up to `step` with the seeds
+    ahead (a training that ends at a step does not validate there)."""
+    config = runs[0].config
+    if step == 0 or step % config.eval_every or step >= config.steps:
+        return []
+    return [
+        run
+        for run in runs
+        if not any(r["split"] == "validation" and r["step"] == step for r in read_run_csv(run.out / "eval.csv"))
+    ]
+
+
 def evaluation_rows(
     evaluator: Evaluator,
     policies: list[MurmPolicy],
@@ -411,13 +459,14 @@ def evaluation_rows(
     authors: bool,
     step: int,
     split: str,
+    stop: Callable[[], bool] | None = None,
 ) -> list[list[dict]]:
     """Each policy's rows of eval.csv: its success on the episodes `seeds` at every masking
-    level (and the authors' masking protocol where asked)."""
+    level (and the authors' masking protocol where asked); `stop`: as `Evaluator.evaluate`."""
     levels = [(mask_p, "paper") for mask_p in mask_ps] + ([(1 / 3, "authors")] if authors else [])
     rows: list[list[dict]] = [[] for _ in policies]
     for mask_p, mode in levels:
-        for own, result in zip(rows, evaluator.evaluate(policies, seeds, mask_p, mode), strict=True):
+        for own, result in zip(rows, evaluator.evaluate(policies, seeds, mask_p, mode, stop), strict=True):
             own.append(
                 {
                     "step": step,

@@ -11,6 +11,7 @@ import time
 from contextlib import suppress
 from pathlib import Path
 
+import psutil
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -97,7 +98,18 @@ def test_the_lock_dies_with_its_holder_even_with_a_forked_child_alive(tmp_path, 
             assert lock_file(folder).read_text() == f"{os.getpid()}\n"
     finally:
         if how == "fork":
-            os.kill(int(printed[0]), signal.SIGKILL)
+            child = int(printed[0])
+            os.kill(child, signal.SIGKILL)
+            deadline = time.monotonic() + 30  # it dies a moment after the signal (under load, after the test)
+            while time.monotonic() < deadline and _alive(child):
+                time.sleep(0.05)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
 
 
 @pytest.mark.timeout(600)  # were the holder never to release its lock

@@ -392,7 +392,9 @@ def _train_members(runs: list[SeedRun], until: int, replay: LatentReplay, device
                         validate(runs)
                         window_start = time.perf_counter()  # the window's rate leaves the evaluation out
             except EvaluationStopped:
-                pass  # this step is checkpointed (again below, with the cut evaluation's seconds); its validation comes first on resume
+                # this step is checkpointed, and again below with the cut evaluation's seconds in its
+                # wall time; its validation comes first when the run resumes
+                pass
             checkpoint()
             if loop.interrupted:
                 raise TrainingInterrupted(f"stopped at step {loop.step}; run the same command again to resume")

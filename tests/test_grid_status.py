@@ -26,10 +26,14 @@ GRID = {
 }
 
 
-def write_run(run: Path, steps: list[int], successes: list[float], rate: float, eval_s: float) -> None:
-    """A run folder as the trainer leaves it mid-training (its own row writers)."""
+def write_run(run: Path, steps: list[int], successes: list[float], rate: float | list[float], eval_s: float) -> None:
+    """A run folder as the trainer leaves it mid-training (its own row writers); `rate` is
+    the training rate it logged at each step, or at all of them."""
     run.mkdir(parents=True)
-    logged = [dict.fromkeys(LOG_COLUMNS, 0.5) | {"step": s, "steps_per_s": rate} for s in steps]
+    rates = rate if isinstance(rate, list) else [rate] * len(steps)
+    logged = [
+        dict.fromkeys(LOG_COLUMNS, 0.5) | {"step": s, "steps_per_s": r} for s, r in zip(steps, rates, strict=True)
+    ]
     append_rows(run / "log.csv", LOG_COLUMNS, logged)
     points = [
         {
@@ -73,6 +77,17 @@ def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_gr
     assert rows["separated_q-global+adjacent"][0] == "not started" and rows["separated_q-global+adjacent"][-1] == "?"
     assert "0 of 3 cells finished" in out and "1 cell with no rate to go by" in out
     assert (tmp_path / "curves.png").stat().st_size > 0
+
+
+def test_time_left_goes_by_the_runs_usual_rate_not_a_last_slowed_one(tmp_path):
+    """A test suite beside the grid slowed its last logged steps tenfold; the estimate keeps
+    to the rate the run has shown most of the time."""
+    runs = tmp_path / "work" / "runs" / "status_grid" / "place_in_box"
+    steps = [5_000, 10_000, 15_000, 20_000]
+    for seed in (0, 1):
+        write_run(runs / "single-global" / f"seed{seed}", steps, [0.0, 0.5, 0.5, 1.0], [2.0, 2.0, 2.0, 0.2], 900.0)
+    rows = [line for line in murm_status(tmp_path).splitlines() if line.startswith("| place_in_box | single-global")]
+    assert rows[0].rstrip("| ").endswith("| 3.3")  # as at 2 updates/s throughout (28.3 h at the last rate)
 
 
 def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):

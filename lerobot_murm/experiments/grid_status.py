@@ -4,7 +4,8 @@ step, latest validation success and the time left at the rates its runs have sho
 A study's grids run for days over many sittings; this is the look at them between sittings
 or beside a running one. It only reads: the run folders' `log.csv` and `eval.csv` (a row the
 trainer is writing at that moment is skipped, `read_run_csv`), the grid's stored curves and
-results, and its `budget.json`. Time left is one job's: training at the last logged rate plus
+results, and its `budget.json`. Time left is one job's: training at the median of the rates
+the run has logged (a sitting shared with other work slows a few of them, not the median) plus
 the validation evaluations still to come at the seconds the last ones took; a cell not
 started yet is costed like a started cell of the same method and camera count, if any. A
 budget grid's test at its budget, after every run reached the cap, is not counted.
@@ -34,7 +35,7 @@ class CellStatus:
     step: int  # the step every seed has logged (the slowest seed's)
     target: int  # the cap (a budget grid) or the cell's updates
     validation: tuple[int, float] | None  # (step, seeds' mean success 0-1) unmasked, at the latest step all share
-    steps_per_s: float | None  # the last logged training rate (evaluations left out)
+    steps_per_s: float | None  # the median logged training rate of its slowest seed (evaluations left out)
     eval_s: float | None  # seconds of one validation point (all its masking levels)
     curves: list[dict] = field(default_factory=list)  # per seed: {"task", "cell", "curve"} as plot_curves reads
 
@@ -76,7 +77,7 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
     step = min((int(rows[-1]["step"]) if rows else 0) for rows in logs)
     if finished or at_cap:
         step = max(step, target)
-    rates = [rows[-1]["steps_per_s"] for rows in logs if rows]
+    rates = [statistics.median(r["steps_per_s"] for r in rows) for rows in logs if rows]
     unmasked = [{int(r["step"]): r["success_rate"] for r in points if r["mask_p"] == 0} for points in evals]
     shared = set.intersection(*(set(points) for points in unmasked))
     validation = None

@@ -29,9 +29,11 @@ def pytest_configure(config):
     and the suite 19.5 minutes on 2 cores. An OMP_NUM_THREADS of your own wins."""
     import torch
 
+    from lerobot_murm.experiments.executors import threads_per_job
+
     worker = getattr(config, "workerinput", None)
     workers = worker["workercount"] if worker else config.getoption("numprocesses", 1)
-    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // (workers or 1))))
+    os.environ.setdefault("OMP_NUM_THREADS", str(threads_per_job(workers or 1)))
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 

@@ -58,6 +58,12 @@ def murm_status(tmp_path: Path, grid: dict = GRID) -> str:
     return run_command([MURM, "status", "--config", config, *folders, "--plot", tmp_path / "curves.png"], tmp_path)
 
 
+def status_rows(out: str, task: str = "place_in_box") -> dict[str, list[str]]:
+    """The status table's rows of `task`, by cell label: its columns after the label."""
+    cells = (line.split("|") for line in out.splitlines() if line.startswith(f"| {task} |"))
+    return {c[2].strip(): [x.strip() for x in c[3:-1]] for c in cells}
+
+
 def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_grid(tmp_path):
     runs = tmp_path / "work" / "runs" / "status_grid" / "place_in_box"
     write_run(runs / "single-global" / "seed0", [10_000, 20_000], [0.5, 1.0], rate=2.0, eval_s=900.0)
@@ -65,11 +71,7 @@ def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_gr
     with (runs / "single-global" / "seed1" / "log.csv").open("a") as f:
         f.write("30000,0.4")  # the trainer is writing this row right now: not read
     out = murm_status(tmp_path)
-    rows = {
-        line.split("|")[2].strip(): [c.strip() for c in line.split("|")[3:-1]]
-        for line in out.splitlines()
-        if line.startswith("| place_in_box")
-    }
+    rows = status_rows(out)
     # 20,000 of 40,000 updates at 2 updates/s, and two validation points of 900 s still to come: 3.3 h
     assert rows["single-global"] == ["training", "20,000", "40,000", "75.0 % (20,000)", "3.3"]
     # costed like the started single-view cell (6.6 h); no single-view rate for separated Q
@@ -86,8 +88,8 @@ def test_time_left_goes_by_the_runs_usual_rate_not_a_last_slowed_one(tmp_path):
     steps = [5_000, 10_000, 15_000, 20_000]
     for seed in (0, 1):
         write_run(runs / "single-global" / f"seed{seed}", steps, [0.0, 0.5, 0.5, 1.0], [2.0, 2.0, 2.0, 0.2], 900.0)
-    rows = [line for line in murm_status(tmp_path).splitlines() if line.startswith("| place_in_box | single-global")]
-    assert rows[0].rstrip("| ").endswith("| 3.3")  # as at 2 updates/s throughout (28.3 h at the last rate)
+    time_left = status_rows(murm_status(tmp_path))["single-global"][-1]
+    assert time_left == "3.3"  # as at 2 updates/s throughout (28.3 h at the last rate)
 
 
 def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):

@@ -169,3 +169,20 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
         assert ours["adopted_from"]["step"] == theirs["steps"] and ours["adopted_from"]["from"] == str(run)
     narrow = tmp_path / "work" / "runs" / "budget_other" / "place_in_box" / "narrow" / "seed0"
     assert [line.split(",")[0] for line in (narrow / "log.csv").read_text().splitlines()[1:3]] == ["10", "20"]
+
+    # a new machine: the results folder (committed) holds budget_tiny's curves to the cap and no
+    # test yet, the work dir is empty; its runs train again there, rather than the grid failing
+    # at the test for want of the policies they kept, and `murm status` says they have not started
+    config.write_text(yaml.safe_dump(grid))
+    for tested in (results / "runs").glob("*.json"):
+        tested.unlink()
+    new_machine = [*args[:4], f"--work_dir={tmp_path / 'new_machine'}", args[5]]
+    assert "| single-global | not started |" in run_command([MURM, "status", *new_machine[2:]], tmp_path, env=env)
+    out = run_command(new_machine, tmp_path, env=env, timeout=900)
+    assert out.count("its kept policies not in this work dir: trained again") == 2, out
+    for seed in (0, 1):
+        run = tmp_path / "new_machine" / "runs" / "budget_tiny" / "place_in_box" / "single-global" / f"seed{seed}"
+        budget = json.loads((results / "budget.json").read_text())["budget"]
+        assert (run / "checkpoints" / f"{budget:06d}" / "pretrained_model" / "model.safetensors").exists()
+        tested = json.loads((results / "runs" / f"place_in_box__single-global__seed{seed}.json").read_text())
+        assert tested["steps"] == budget and tested["final"][0]["split"] == "test"

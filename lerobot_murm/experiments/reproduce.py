@@ -52,6 +52,7 @@ from lerobot_murm.experiments.reuse import (
     finished_elsewhere,
     grid_so_far,
     kept_as_finished,
+    ready_to_test,
     run_recipe,
     set_aside,
     stored_at,
@@ -352,13 +353,14 @@ def _run_budget_grid(
     # a later sitting starts at the cap an earlier one had reached
     cap = max(spec.cap, json.loads(decision_file.read_text())["cap"] if decision_file.exists() else 0)
     while True:
-        todo = [
-            (shipped, task, cell, seed)
-            for task, cell, seed in grid
-            if not stored_at(
-                curves_dir / result_path(config, task, cell, seed).name, run_recipe(config, task, cell, seed), cap
-            )
-        ]
+        todo = []
+        for task, cell, seed in grid:
+            curve = curves_dir / result_path(config, task, cell, seed).name
+            if not stored_at(curve, run_recipe(config, task, cell, seed), cap):
+                todo.append((shipped, task, cell, seed))
+            elif not ready_to_test(config, task, cell, seed, cap):
+                print(f"{curve.name}: curve stored to {cap:,}, its kept policies not in this work dir: trained again")
+                todo.append((shipped, task, cell, seed))
         build_stages(executor, shipped, todo)
         # a timed grid (Table 1) trains each seed alone, one at a time: its time per update is a result
         jobs = [job + (cap,) for job in training_jobs(todo, together=config.stack_seeds and not config.timed)]

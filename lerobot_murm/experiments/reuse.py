@@ -19,12 +19,15 @@ from lerobot_murm.device import resolve_device
 from lerobot_murm.experiments.artifacts import (
     dataset_root,
     encoder_root,
+    result_path,
+    run_dir,
 )
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig, load_reproduce_config
 from lerobot_murm.experiments.results import read_result
 from lerobot_murm.locking import FolderInUse, exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.precision import resolve_precision
+from lerobot_murm.training.run_folder import kept_policy
 from lerobot_murm.training.train import TrainConfig, config_dict, read_config_dict
 
 
@@ -137,6 +140,26 @@ def stored_at(path: Path, recipe: dict, steps: int) -> bool:
         print(f"{path.name}: another recipe than its cell's (set aside in {set_aside(path).parent})", flush=True)
         return False
     return stored is not None and stored["steps"] == steps
+
+
+def tested_at_budget(config: ReproduceConfig, task: str, cell: CellSpec, seed: int) -> bool:
+    """Whether a budget grid's run has its test result stored, trained by its cell's recipe."""
+    path = result_path(config, task, cell, seed)
+    result = read_result(path) if path.exists() else None
+    recipe = run_recipe(config, task, cell, seed)
+    return result is not None and same_recipe(result.get("recipe"), budget_recipe(recipe, result["steps"]))
+
+
+def ready_to_test(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, cap: int) -> bool:
+    """Whether a budget grid's run, its curve stored to `cap`, can be tested at any budget its
+    table may choose: tested already, or its policy kept at every validation step up to `cap`
+    in this work dir. A curve committed from another machine (a new machine has none of the
+    old work dir) is not enough: its run trains again here, rather than the grid failing at
+    the test, after hours of its other cells, for want of the policies."""
+    if tested_at_budget(config, task, cell, seed):
+        return True
+    run, every = run_dir(config, task, cell, seed), config.budget.every
+    return all(kept_policy(run, step).exists() for step in range(every, cap + 1, every))
 
 
 def grid_so_far(config: ReproduceConfig, stored: Path) -> ReproduceConfig:

@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import gymnasium as gym
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -165,7 +167,7 @@ def test_a_stop_signal_to_the_trainer_and_its_simulator_workers_saves_a_checkpoi
     config = train_config(
         tiny_pipeline, tmp_path, "concat", steps=1_000_000, batch_size=8, log_every=2, eval_every=1_000_000, eval_envs=2
     )
-    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "2"}  # two cores: simulator worker processes
     trainer = subprocess.Popen(
         [str(BIN / "murm"), "train", "--config", str(config)],
         cwd=tmp_path,
@@ -253,6 +255,33 @@ def test_the_evaluator_leaves_the_callers_stop_signals_alone():
     with Evaluator("place_in_box", ["global"], image_size=16, num_envs=1):
         pass
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+def test_simulators_in_this_process_run_the_very_episodes_the_worker_processes_run():
+    """A job with one core steps its evaluation's simulators in its own process: the same
+    observations and successes, step for step, as in worker processes."""
+    from lerobot_murm.training.evaluate import Evaluator
+
+    seeds = [200_000, 200_001, 200_002, 200_003]
+    actions = np.random.default_rng(0).uniform(-1, 1, (40, 4, 4)).astype(np.float32)
+    episodes = {}
+    for processes in (True, False):
+        with Evaluator(
+            "place_in_box", ["global", "adjacent"], image_size=16, num_envs=2, policies=2, processes=processes
+        ) as ev:
+            assert isinstance(ev.envs, gym.vector.AsyncVectorEnv) == processes
+            observation, _ = ev.envs.reset(seed=seeds)
+            frames, successes = [observation["pixels"]], []
+            for action in actions:
+                observation, _, _, _, info = ev.envs.step(action)
+                frames.append(observation["pixels"])
+                successes.append(np.asarray(info["is_success"], bool))
+        episodes[processes] = frames, successes
+    (in_workers, worker_successes), (here, here_successes) = episodes[True], episodes[False]
+    for a, b in zip(in_workers, here, strict=True):
+        assert a.keys() == b.keys() and all(np.array_equal(a[key], b[key]) for key in a)
+    assert np.array_equal(worker_successes, here_successes)
+    assert not np.array_equal(in_workers[0]["global"], in_workers[-1]["global"])  # the arm moved
 
 
 def test_validation_and_test_seeds_must_be_disjoint(tiny_pipeline, tmp_path):

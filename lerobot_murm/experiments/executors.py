@@ -95,8 +95,9 @@ class ProcessExecutor:
 
     Two trainers that each use every core slow each other down far more than 2x (thread
     oversubscription); dividing the cores between them lets their throughputs add up.
-    Each run keeps its `train.eval_envs` simulator processes: the camera-masking draws
+    Each run keeps its `train.eval_envs` simulators per seed: the camera-masking draws
     depend on how evaluation episodes are batched, so resizing them would change results.
+    A job with one core steps them in its own process (`Evaluator`: no core to spare for workers).
     A stop (Ctrl-C or SIGTERM, which reach every process of the group, or one job stopped or
     failed) stops every running job at its next step with its checkpoint, and starts no
     queued one; the driver returns once they have saved. The job processes are the driver's

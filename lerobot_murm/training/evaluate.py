@@ -3,9 +3,10 @@
 An episode succeeds if the task's success condition holds at any step, as in
 `lerobot-eval`. Camera masking (Table 4) is the policy's own `eval_mask_p`, so this
 evaluation and `lerobot-eval` mask identically. The simulators run in worker processes
-(a gymnasium AsyncVectorEnv) while the policy acts on the whole batch at once.
+(a gymnasium AsyncVectorEnv) where there are cores to spare, else in the trainer's process
+(a SyncVectorEnv), while the policy acts on the whole batch at once.
 
-The seeds of a stack (`seed_stack.py`) evaluate together: `num_envs` workers per seed in
+The seeds of a stack (`seed_stack.py`) evaluate together: `num_envs` simulators per seed in
 one pool, each seed's group running the very episodes (seeds, batching, masking draws) it
 would run alone, and one forward per step for all of them: the shared encoders once over
 every observation, then all seeds' actors as one batched network.
@@ -105,18 +106,33 @@ def _worker(*args: object) -> None:
 
 
 class Evaluator:
-    """Keeps `num_envs` simulator processes per policy evaluated together alive between evaluations."""
+    """Keeps `num_envs` simulators per policy evaluated together alive between evaluations.
 
-    def __init__(self, task: str, cameras: list[str], image_size: int = 48, num_envs: int = 4, policies: int = 1):
+    They step in worker processes when this process has more than one core (torch's thread
+    count: `murm train` alone has the machine's, a grid's job `cores // jobs`), else in this
+    process: on one core the workers only add pipes and context switches (evaluations 1.3x
+    slower with two jobs on two cores, BENCHMARKS.md). `processes` forces either way. The
+    episodes, their batching and the masking draws are the same either way."""
+
+    def __init__(
+        self,
+        task: str,
+        cameras: list[str],
+        image_size: int = 48,
+        num_envs: int = 4,
+        policies: int = 1,
+        processes: bool | None = None,
+    ):
         if task not in GYM_IDS:
             raise ValueError(f"unknown task {task!r}; choose one of {sorted(GYM_IDS)}")
         self.task, self.cameras, self.num_envs, self.policies = task, list(cameras), num_envs, policies
         kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
-        self.envs = gym.vector.AsyncVectorEnv(
-            [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs * policies)],
-            context="fork",
-            worker=_worker,
-        )
+        makers = [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs * policies)]
+        self.processes = torch.get_num_threads() > 1 if processes is None else processes
+        if self.processes:
+            self.envs = gym.vector.AsyncVectorEnv(makers, context="fork", worker=_worker)
+        else:
+            self.envs = gym.vector.SyncVectorEnv(makers)
 
     def close(self) -> None:
         self.envs.close()

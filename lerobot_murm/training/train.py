@@ -94,7 +94,7 @@ class TrainConfig:
     # also evaluate, at the end, the authors' public code's masking protocol (one random
     # camera masked on a third of the steps; MurmConfig.eval_mask_mode)
     eval_authors_masking: bool = False
-    eval_envs: int = 4  # simulator processes
+    eval_envs: int = 4  # simulators per seed (worker processes where the run has a core to spare: Evaluator)
     # episode i of the validation range has seed validation_seed + i: learning curves and every
     # choice are made on these; the test range (test_seed + i) gives the reported numbers only
     validation_seed: int = VALIDATION_SEED

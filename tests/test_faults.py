@@ -464,7 +464,7 @@ def test_kill_9_of_the_trainer_during_evaluation_leaves_no_worker_and_no_traceba
             [str(MURM), "train", "--config", str(path)],
             stdout=out,
             stderr=subprocess.STDOUT,
-            env=os.environ | {"HF_HUB_OFFLINE": "1"},
+            env=os.environ | {"HF_HUB_OFFLINE": "1", "OMP_NUM_THREADS": "2"},  # two cores: worker processes
         )
     deadline = time.monotonic() + 600  # a liveness bound for a crowded machine
     try:

@@ -16,6 +16,14 @@ _DATASETS_CACHE = tempfile.mkdtemp(prefix="murm-tests-datasets-cache-")
 os.environ["HF_DATASETS_CACHE"] = _DATASETS_CACHE
 atexit.register(shutil.rmtree, _DATASETS_CACHE, ignore_errors=True)
 
+# matplotlib's font list lives in ~/.cache/matplotlib, shared by every matplotlib on the
+# machine and trusted while the fonts it names exist: one written by a matplotlib whose venv was
+# being deleted listed only the system's DejaVu, and every plot of a fresh clone's tests then
+# warned of its missing STIX fonts (three quiet-output tests failed). The suite builds its own.
+_MATPLOTLIB_DIR = tempfile.mkdtemp(prefix="murm-tests-matplotlib-")
+os.environ["MPLCONFIGDIR"] = _MATPLOTLIB_DIR
+atexit.register(shutil.rmtree, _MATPLOTLIB_DIR, ignore_errors=True)
+
 from lerobot_murm.env import MurmEnv  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))

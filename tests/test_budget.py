@@ -180,9 +180,9 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
     assert "| single-global | not started |" in run_command([MURM, "status", *new_machine[2:]], tmp_path, env=env)
     out = run_command(new_machine, tmp_path, env=env, timeout=900)
     assert out.count("its kept policies not in this work dir: trained again") == 2, out
+    budget = json.loads((results / "budget.json").read_text())["budget"]
     for seed in (0, 1):
         run = tmp_path / "new_machine" / "runs" / "budget_tiny" / "place_in_box" / "single-global" / f"seed{seed}"
-        budget = json.loads((results / "budget.json").read_text())["budget"]
         assert (run / "checkpoints" / f"{budget:06d}" / "pretrained_model" / "model.safetensors").exists()
         tested = json.loads((results / "runs" / f"place_in_box__single-global__seed{seed}.json").read_text())
         assert tested["steps"] == budget and tested["final"][0]["split"] == "test"

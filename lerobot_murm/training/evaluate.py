@@ -110,7 +110,7 @@ class Evaluator:
 
     They step in worker processes when this process has more than one core (torch's thread
     count: `murm train` alone has the machine's, a grid's job `cores // jobs`), else in this
-    process: on one core the workers only add pipes and context switches (evaluations 1.3x
+    process: on one core the workers only add pipes and context switches (evaluations 1.2x
     slower with two jobs on two cores, BENCHMARKS.md). `processes` forces either way. The
     episodes, their batching and the masking draws are the same either way."""
 
@@ -128,8 +128,8 @@ class Evaluator:
         self.task, self.cameras, self.num_envs, self.policies = task, list(cameras), num_envs, policies
         kwargs = {"cameras": self.cameras, "image_size": image_size, "render_mode": None}
         makers = [partial(_make_worker_env, GYM_IDS[task], kwargs, os.getpid()) for _ in range(num_envs * policies)]
-        self.processes = torch.get_num_threads() > 1 if processes is None else processes
-        if self.processes:
+        in_workers = torch.get_num_threads() > 1 if processes is None else processes
+        if in_workers:
             self.envs = gym.vector.AsyncVectorEnv(makers, context="fork", worker=_worker)
         else:
             self.envs = gym.vector.SyncVectorEnv(makers)

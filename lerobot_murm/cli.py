@@ -241,6 +241,7 @@ def _reproduce(args: argparse.Namespace) -> None:
 
 
 def _status(args: argparse.Namespace) -> None:
+    from lerobot_murm.experiments.best_views import choose_views
     from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
     from lerobot_murm.experiments.grid_status import grid_status, plot_status, status_markdown
 
@@ -248,8 +249,9 @@ def _status(args: argparse.Namespace) -> None:
     if config.prepare_only:
         print(f"{config.name}: builds datasets and encoders only, no training run (murm reproduce says where it is)")
         return
+    config, _, waiting = choose_views(config)
     cells = grid_status(config)
-    print(status_markdown(config, cells), end="")
+    print(status_markdown(config, cells, waiting), end="")
     if args.plot:
         if plot_status(cells, Path(args.plot)):
             print(f"validation curves so far: {args.plot}")

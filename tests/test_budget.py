@@ -119,6 +119,20 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
     again = run_command(args, tmp_path, env=env, timeout=900)  # a second sitting finds everything done
     assert "trained to" not in again and f"budget {budget:,} updates" in again
 
+    # a grid whose cell takes the view that did best alone in this one, at its budget: the
+    # cell's runs are this grid's recipe, so they start from its runs instead of training again
+    best = {"method": "single", "best_views": {"grid": "budget_tiny", "count": 1}}
+    config.write_text(yaml.safe_dump(grid | {"name": "views_tiny", "cells": [best]}))
+    out = run_command(args, tmp_path, env=env, timeout=900)
+    assert "single-best1-of-budget_tiny: global (validation at budget_tiny's budget: global" in out
+    choices = json.loads((tmp_path / "results" / "views_tiny" / "best_views.json").read_text())
+    assert choices["single-best1-of-budget_tiny"]["chosen"] == ["global"]
+    assert choices["single-best1-of-budget_tiny"]["budget"] == budget
+    for seed in (0, 1):
+        name = f"place_in_box__single-global__seed{seed}.json"
+        tested = json.loads((tmp_path / "results" / "views_tiny" / "runs" / name).read_text())
+        assert tested["final"] == json.loads((results / "runs" / name).read_text())["final"]
+
     status = run_command([MURM, "status", *args[2:]], tmp_path, env=env)  # `murm status` reads the grid alike
     assert "1 of 1 cells finished" in status and f"| single-global | finished | {decision['cap']} |" in status
 

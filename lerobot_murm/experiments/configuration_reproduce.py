@@ -82,9 +82,29 @@ class BudgetSpec:
 
 
 @dataclass
+class BestViewsSpec:
+    """A cell whose cameras another budget grid chooses: the views that did best alone (the
+    paper's procedure, section 5.2). Ranked by each single-view cell's seeds' mean unmasked
+    validation success at that grid's final budget on `task` (`best_views.py`); the cell gets
+    its cameras when its grid runs, and adds nothing if another cell already has them."""
+
+    grid: str = "table3"  # the budget grid whose single-view cells rank the cameras
+    task: str = "place_in_box"  # the task they are ranked on
+    count: int = 2  # how many of the best views the cell takes
+
+    def check(self) -> None:
+        if self.task not in TASK_NAMES:
+            raise ValueError(f"best_views.task: unknown task {self.task!r}; choose from {list(TASK_NAMES)}")
+        if not 1 <= self.count <= len(CAMERA_NAMES):
+            raise ValueError(f"best_views.count must be 1 to {len(CAMERA_NAMES)}, got {self.count}")
+        if not self.grid:
+            raise ValueError("best_views.grid: name the grid that ranks the views")
+
+
+@dataclass
 class CellSpec:
     method: str
-    cameras: list[str]
+    cameras: list[str] = field(default_factory=list)  # empty where `best_views` chooses them
     label: str = ""  # default: method and cameras
     eval_mask_p: list[float] = field(default_factory=lambda: [0.0])
     eval_authors_masking: bool = False  # also the authors' code's masking protocol (an extra row)
@@ -100,10 +120,17 @@ class CellSpec:
     noise_scale: float | None = None
     policy: dict = field(default_factory=dict)  # any other MurmConfig field
     steps: int | None = None  # updates of this cell's runs; default: the grid's train.steps
+    best_views: BestViewsSpec | None = None  # cameras chosen by another grid's results, when this one runs
 
     def __post_init__(self) -> None:
+        if self.best_views is not None:
+            self.best_views.check()
+            if self.cameras:
+                raise ValueError(f"cell {self.label or self.method}: best_views chooses its cameras; leave cameras out")
+        elif not self.cameras:
+            raise ValueError(f"cell {self.label or self.method}: no cameras")
         if not self.label:
-            self.label = f"{self.method}-{'+'.join(self.cameras)}"
+            self.label = self.default_label()
         given = {
             k: v
             for k, v in (
@@ -117,6 +144,8 @@ class CellSpec:
             raise ValueError(
                 f"cell {self.label}: set one of epsilon, paper_epsilon, epsilon_quantile, not {list(given)}"
             )
+        if given and self.best_views is not None:
+            raise ValueError(f"cell {self.label}: per-camera {list(given)} need named cameras, not best_views")
         for key, values in given.items():
             if len(values) != len(self.cameras):
                 raise ValueError(f"cell {self.label}: {len(values)} {key} values for {len(self.cameras)} cameras")
@@ -131,6 +160,16 @@ class CellSpec:
                 f"cell {self.label}: noise_scale must be positive and makes every demonstration noisy "
                 "(do not set noisy_fraction with it)"
             )
+
+    def default_label(self) -> str:
+        if self.best_views is not None:
+            return f"{self.method}-best{self.best_views.count}-of-{self.best_views.grid}"
+        return f"{self.method}-{'+'.join(self.cameras)}"
+
+    def checked_cameras(self) -> list[str]:
+        """The cameras the config's checks build the cell with: its own, or any `count` for a
+        `best_views` cell (no check depends on which)."""
+        return list(self.cameras) or list(CAMERA_NAMES[: self.best_views.count])
 
 
 @dataclass
@@ -251,7 +290,11 @@ class ReproduceConfig:
         for cell in self.cells:
             try:
                 policy = MurmConfig(
-                    method=cell.method, cameras=list(cell.cameras), epsilon=cell.epsilon, device="cpu", **cell.policy
+                    method=cell.method,
+                    cameras=cell.checked_cameras(),
+                    epsilon=cell.epsilon,
+                    device="cpu",
+                    **cell.policy,
                 )
                 for task in self.tasks:
                     CollectConfig(

@@ -122,7 +122,8 @@ def hours_left(status: CellStatus, cells: list[CellStatus], config: ReproduceCon
     return seconds / 3600 * (1 if together else len(config.seeds))
 
 
-def status_markdown(config: ReproduceConfig, cells: list[CellStatus]) -> str:
+def status_markdown(config: ReproduceConfig, cells: list[CellStatus], waiting: dict[str, str] | None = None) -> str:
+    """The status table; `waiting`: cells whose cameras another grid has not chosen yet ({label: why})."""
     lines = [
         f"{config.name}: {sum(c.state == FINISHED for c in cells)} of {len(cells)} cells finished, "
         f"seeds {config.seeds}",
@@ -144,7 +145,10 @@ def status_markdown(config: ReproduceConfig, cells: list[CellStatus]) -> str:
         total += f", and {unknown} cell{'s' if unknown > 1 else ''} with no rate to go by"
     if config.budget:
         total += " (to the cap; the test at the budget comes after)"
-    return "\n".join(lines + ["", total + "; with --jobs N, about 1/N of it."]) + "\n"
+    notes = [
+        f"{label}: not in the table yet, its cameras are not chosen: {why}" for label, why in (waiting or {}).items()
+    ]
+    return "\n".join(lines + ["", total + "; with --jobs N, about 1/N of it.", *notes]) + "\n"
 
 
 def plot_status(cells: list[CellStatus], path: Path) -> bool:

@@ -11,7 +11,7 @@ import draccus
 import pytest
 
 from lerobot_murm.cli import main
-from lerobot_murm.experiments.best_views import choose_views
+from lerobot_murm.experiments.best_views import choices_markdown, choose_views
 from lerobot_murm.experiments.budget import choose_budget
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 
@@ -70,6 +70,11 @@ def test_table4_pairs_the_two_best_single_views_by_validation_at_table3s_budget_
     choice = choices["separated_q-best2-of-table3"]
     assert choice["budget"] == 30_000 and choice["added"] and choice["chosen"] == ["side", "active"]
     assert [r["camera"] for r in choice["ranking"]] == ["active", "side", "top", "global", "adjacent"]
+    assert choices_markdown(choices).startswith(
+        "- `separated_q-best2-of-table3`: side + active (cell `separated_q-side+active`). table3's single views "
+        "on place_in_box, by their seeds' mean unmasked validation success at its budget of 30,000 updates: "
+        "active 80.0 %, side 70.0 %, top 68.0 %, global 50.0 %, adjacent 40.0 %.\n"
+    )
 
 
 def test_no_cell_is_added_when_the_best_views_are_the_papers_global_and_adjacent(tmp_path):
@@ -79,6 +84,7 @@ def test_no_cell_is_added_when_the_best_views_are_the_papers_global_and_adjacent
     assert chosen.cells == [cell for cell in table4.cells if cell.best_views is None]
     assert choices["dropout-best2-of-table3"]["cell"] == "dropout-global+adjacent"
     assert not choices["dropout-best2-of-table3"]["added"]
+    assert "(`dropout-global+adjacent`, a cell the grid has anyway)" in choices_markdown(choices)
 
 
 def test_a_chosen_cell_that_clashes_with_another_cell_of_that_label_is_refused(tmp_path):

@@ -1,6 +1,7 @@
 """The claims list: verdicts from the grids' tables by the rules written before they ran."""
 
 import csv
+import json
 import shutil
 from pathlib import Path
 
@@ -185,7 +186,19 @@ def test_table3_and_table6_rank_the_views(tmp_path):
 def test_the_report_and_readme_show_the_claims_with_their_numbers(tmp_path):
     table4(tmp_path / "results", dict.fromkeys(TASKS, 31.0))
     shutil.copy(REPO / "configs/reproduce/table4.yaml", tmp_path / "results/table4/config.yaml")
+    ranking = [{"camera": c, "validation_success": s} for c, s in (("active", 0.8), ("side", 0.7), ("global", 0.5))]
+    chosen = {
+        "grid": "table3",
+        "task": "place_in_box",
+        "budget": 30_000,
+        "ranking": ranking,
+        "chosen": ["side", "active"],
+    }
+    (tmp_path / "results/table4/best_views.json").write_text(
+        json.dumps({"dropout-best2-of-table3": chosen | {"cell": "dropout-side+active", "added": True}})
+    )
     report = write_report(tmp_path / "results", tmp_path / "REPORT.md").read_text()
+    assert "- `dropout-best2-of-table3`: side + active (cell `dropout-side+active`)." in report
     assert "## Which of the paper's claims hold here" in report
     assert "| Table 4 | separated Q is the best method under masking | **not resolved** |" in report
     assert "place_in_box: single 2 ± 1, concat 5 ± 2, dropout 30 ± 4, separated Q 31 ± 4 (not resolved)" in report

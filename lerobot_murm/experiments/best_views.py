@@ -90,3 +90,17 @@ def choose_views(config: ReproduceConfig) -> tuple[ReproduceConfig, dict[str, di
         if twin is None:
             cells.append(chosen)
     return replace(config, cells=cells), choices, waiting
+
+
+def choices_markdown(choices: dict[str, dict]) -> str:
+    """What each `best_views` cell of a grid was given, and the ranking it came from."""
+    lines = []
+    for label, choice in choices.items():
+        ranking = ", ".join(f"{r['camera']} {100 * r['validation_success']:.1f} %" for r in choice["ranking"])
+        given = f"cell `{choice['cell']}`" if choice["added"] else f"`{choice['cell']}`, a cell the grid has anyway"
+        lines.append(
+            f"- `{label}`: {' + '.join(choice['chosen'])} ({given}). {choice['grid']}'s single views on "
+            f"{choice['task']}, by their seeds' mean unmasked validation success at its budget of "
+            f"{choice['budget']:,} updates: {ranking}."
+        )
+    return "\n".join(lines) + "\n"

@@ -5,12 +5,14 @@ time (`murm report`), which also refreshes the README's results tables (between
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
+from lerobot_murm.experiments.best_views import CHOICES, choices_markdown
 from lerobot_murm.experiments.claims import claims_table, goal_source_table
 from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
 from lerobot_murm.experiments.flattening import flattening_table
@@ -326,6 +328,12 @@ def write_report(results_dir: Path, path: Path, preface: str = "") -> Path:
                 f"The table's one budget, chosen on the seeds' mean validation curves before any test episode "
                 f"(`lerobot_murm/experiments/budget.py`):\n\n{budget.read_text().strip()}\n\n"
                 if (budget := results / "budget.md").exists()
+                else ""
+            )
+            + (
+                f"Cells whose cameras another grid chose (`lerobot_murm/experiments/best_views.py`):\n\n"
+                f"{choices_markdown(json.loads(chosen.read_text()))}\n"
+                if (chosen := results / CHOICES).exists()
                 else ""
             )
             + (f"{discussion.read_text().strip()}\n\n" if (discussion := results / "discussion.md").exists() else "")

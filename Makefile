@@ -16,11 +16,10 @@ run: $(STAMP)
 
 # pytest exits 5 when it collects no test: that is not a failure of the suite. Two pytest-xdist
 # workers (TEST_WORKERS=0: one process): most tests wait on their subprocesses, so two at a time
-# fill 2 cores (23.6 -> 17.1 min on a 2-core Xeon, README "The test suite"). Tests go to a
-# worker one at a time as it frees, in the order tests/conftest.py gives: longest first.
+# fill 2 cores (23.6 -> 17.1 min on a 2-core Xeon, README "The test suite").
 TEST_WORKERS := 2
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist load --maxschedchunk 1 --durations=15; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 0; fi; exit $$rc
+	$(VENV)/bin/python -m pytest -q -n $(TEST_WORKERS) --dist worksteal --durations=15; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; exit 0; fi; exit $$rc
 
 # What CI checks before the tests: ruff's rules and its formatting (pyproject.toml [tool.ruff]).
 LINTED := lerobot_murm lerobot_policy_murm tests benchmarks scripts

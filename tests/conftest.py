@@ -45,20 +45,6 @@ def pytest_configure(config):
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
-def pytest_collection_modifyitems(items):
-    """The end-to-end tests (marked slow) first, the longest (`slow(minutes=N)`, about N minutes
-    alone on 2 cores) at their head: `make test` hands tests to its workers one at a time as
-    each frees (`--dist load --maxschedchunk 1`), so the longest start at once. In the files'
-    own order, with xdist's work stealing, the 7-minute smoke cell started late on one worker
-    while the other, its half done, waited (the suite used 141 % of the two cores' 200 %)."""
-
-    def longest_first(item: pytest.Item) -> tuple[bool, float]:
-        slow = item.get_closest_marker("slow")
-        return slow is None, -(slow.kwargs.get("minutes", 1) if slow else 0)
-
-    items.sort(key=longest_first)
-
-
 @pytest.fixture
 def make_env():
     """Build MurmEnvs that are closed after the test."""

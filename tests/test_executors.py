@@ -145,7 +145,7 @@ def _frames(root: Path):
     return LeRobotDataset(f"local/{root.name}", root=root).hf_dataset.with_format("arrow")[:]
 
 
-@pytest.mark.slow(minutes=2)
+@pytest.mark.slow
 @pytest.mark.timeout(1800)  # two tiny grids side by side, each bounded at 900 s
 def test_the_smoke_grid_on_a_ray_cluster_matches_the_local_executor_and_survives_a_killed_worker(tmp_path, ray_cluster):
     grid = ["reproduce", "--config", str(REPO / "configs/reproduce/smoke.yaml"), *TINY]

@@ -123,7 +123,7 @@ def collect_until_killed(args: list[str], root: Path, rng: random.Random) -> Non
         time.sleep(0.1)
 
 
-@pytest.mark.slow(minutes=3)
+@pytest.mark.slow
 def test_kill_9_at_random_points_then_resume_gives_the_unbroken_dataset(tmp_path):
     episodes, flush_every = 12, 2
     reference = tmp_path / "unbroken"
@@ -160,7 +160,7 @@ collect(half, donors=noise_donors(half))
 """
 
 
-@pytest.mark.slow(minutes=2)
+@pytest.mark.slow
 def test_kill_9_while_copying_from_noise_donors_then_resume_gives_the_unbroken_dataset(tmp_path):
     """A half-noisy collection copied from its all-clean and all-noisy siblings (as `murm
     reproduce` builds Table 7's) survives kill -9 like a simulated one."""

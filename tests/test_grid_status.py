@@ -26,11 +26,14 @@ GRID = {
 }
 
 
-def write_run(run: Path, steps: list[int], successes: list[float], rate: float | list[float], eval_s: float) -> None:
-    """A run folder as the trainer leaves it mid-training (its own row writers); `rate` is
-    the training rate it logged at each step, or at all of them."""
+def write_run(
+    run: Path, steps: list[int], successes: list[float], rate: float | list[float], eval_s: float | list[float]
+) -> None:
+    """A run folder as the trainer leaves it mid-training (its own row writers); `rate` and
+    `eval_s` are the training rate and validation seconds it logged at each step, or at all."""
     run.mkdir(parents=True)
     rates = rate if isinstance(rate, list) else [rate] * len(steps)
+    seconds = eval_s if isinstance(eval_s, list) else [eval_s] * len(steps)
     logged = [
         dict.fromkeys(LOG_COLUMNS, 0.5) | {"step": s, "steps_per_s": r} for s, r in zip(steps, rates, strict=True)
     ]
@@ -41,11 +44,11 @@ def write_run(run: Path, steps: list[int], successes: list[float], rate: float |
             "mask_p": 0.0,
             "success_rate": r,
             "episodes": 2,
-            "seconds": eval_s,
+            "seconds": t,
             "split": "validation",
             "mask_mode": "paper",
         }
-        for s, r in zip(steps, successes, strict=True)
+        for s, r, t in zip(steps, successes, seconds, strict=True)
     ]
     append_rows(run / "eval.csv", EVAL_COLUMNS, points)
 
@@ -81,15 +84,17 @@ def test_status_reads_each_cells_step_validation_and_time_left_from_a_running_gr
     assert (tmp_path / "curves.png").stat().st_size > 0
 
 
-def test_time_left_goes_by_the_runs_usual_rate_not_a_last_slowed_one(tmp_path):
-    """A test suite beside the grid slowed its last logged steps tenfold; the estimate keeps
-    to the rate the run has shown most of the time."""
+def test_time_left_goes_by_the_runs_usual_rates_not_a_last_slowed_or_paused_one(tmp_path):
+    """A test suite beside the grid slowed its last logged steps tenfold, and its last
+    validation point was paused for a measurement; the estimate keeps to the rate and the
+    validation time the run has shown most of the time."""
     runs = tmp_path / "work" / "runs" / "status_grid" / "place_in_box"
     steps = [5_000, 10_000, 15_000, 20_000]
+    rates, seconds = [2.0, 2.0, 2.0, 0.2], [900.0, 900.0, 900.0, 9000.0]
     for seed in (0, 1):
-        write_run(runs / "single-global" / f"seed{seed}", steps, [0.0, 0.5, 0.5, 1.0], [2.0, 2.0, 2.0, 0.2], 900.0)
+        write_run(runs / "single-global" / f"seed{seed}", steps, [0.0, 0.5, 0.5, 1.0], rates, seconds)
     time_left = status_rows(murm_status(tmp_path))["single-global"][-1]
-    assert time_left == "3.3"  # as at 2 updates/s throughout (28.3 h at the last rate)
+    assert time_left == "3.3"  # as at 2 updates/s and 900 s a point (28.3 h at the last rate, 7.8 h at the last point)
 
 
 def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):

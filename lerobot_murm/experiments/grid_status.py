@@ -6,7 +6,8 @@ or beside a running one. It only reads: the run folders' `log.csv` and `eval.csv
 trainer is writing at that moment is skipped, `read_run_csv`), the grid's stored curves and
 results, and its `budget.json`. Time left is one job's: training at the median of the rates
 the run has logged (a sitting shared with other work slows a few of them, not the median) plus
-the validation evaluations still to come at the seconds the last ones took; a cell not
+the validation points still to come at the median seconds its points took (one paused for a
+measurement counts its pause); a cell not
 started yet is costed like a started cell of the same method and camera count, if any. A
 budget grid's test at its budget, after every run reached the cap, is not counted.
 """
@@ -36,7 +37,7 @@ class CellStatus:
     target: int  # the cap (a budget grid) or the cell's updates
     validation: tuple[int, float] | None  # (step, seeds' mean success 0-1) unmasked, at the latest step all share
     steps_per_s: float | None  # the median logged training rate of its slowest seed (evaluations left out)
-    eval_s: float | None  # seconds of one validation point (all its masking levels)
+    eval_s: float | None  # median seconds of its validation points (all masking levels of one)
     curves: list[dict] = field(default_factory=list)  # per seed: {"task", "cell", "curve"} as plot_curves reads
 
     @property
@@ -84,11 +85,10 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
     if shared:
         latest = max(shared)
         validation = (latest, statistics.fmean(points[latest] for points in unmasked))
-    first = evals[0]
-    eval_s = None
-    if first:
-        latest = max(r["step"] for r in first)
-        eval_s = sum(r["seconds"] for r in first if r["step"] == latest)
+    per_point: dict[int, float] = {}  # a validation point's seconds, all its masking levels
+    for r in evals[0]:
+        per_point[r["step"]] = per_point.get(r["step"], 0.0) + r["seconds"]
+    eval_s = statistics.median(per_point.values()) if per_point else None
     state = FINISHED if finished else AT_CAP if at_cap else TRAINING if any(logs) else NOT_STARTED
     curves = [
         {"task": task, "cell": cell.label, "curve": [[r["step"], r["mask_p"], r["success_rate"]] for r in points]}

@@ -124,7 +124,7 @@ def test_a_budget_grid_trains_to_the_cap_on_validation_episodes_then_tests_every
     best = {"method": "single", "best_views": {"grid": "budget_tiny", "count": 1}}
     config.write_text(yaml.safe_dump(grid | {"name": "views_tiny", "cells": [best]}))
     out = run_command(args, tmp_path, env=env, timeout=900)
-    assert "single-best1-of-budget_tiny: global (validation at budget_tiny's budget: global" in out
+    assert "- `single-best1-of-budget_tiny`: global (cell `single-global`). budget_tiny's single views" in out
     choices = json.loads((tmp_path / "results" / "views_tiny" / "best_views.json").read_text())
     assert choices["single-best1-of-budget_tiny"]["chosen"] == ["global"]
     assert choices["single-best1-of-budget_tiny"]["budget"] == budget

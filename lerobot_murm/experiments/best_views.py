@@ -64,7 +64,7 @@ def view_ranking(results_dir: Path, spec: BestViewsSpec) -> dict:
 def choose_views(config: ReproduceConfig) -> tuple[ReproduceConfig, dict[str, dict], dict[str, str]]:
     """The grid with each `best_views` cell given its cameras (in the cameras' usual order,
     so that global + adjacent is the paper's cell's label); a chosen cell equal to another
-    cell of the grid is left out. Also what each was given ({label: ranking, chosen, kept}) and
+    cell of the grid is left out. Also what each was given ({label: ranking, chosen, cell, added}) and
     the cells whose views cannot be chosen yet ({label: why}): `murm reproduce` refuses to
     start with those, `murm status` shows them waiting."""
     cells, choices, waiting = [], {}, {}
@@ -79,8 +79,8 @@ def choose_views(config: ReproduceConfig) -> tuple[ReproduceConfig, dict[str, di
             waiting[cell.label] = str(why)
             continue
         best = {entry["camera"] for entry in ranking["ranking"][: cell.best_views.count]}
-        chosen = replace(cell, cameras=[c for c in CAMERA_NAMES if c in best], best_views=None)
-        chosen.label = chosen.default_label() if cell.label == cell.default_label() else cell.label
+        own_label = "" if cell.label == cell.default_label() else cell.label  # "": the chosen cameras' label
+        chosen = replace(cell, cameras=[c for c in CAMERA_NAMES if c in best], best_views=None, label=own_label)
         twin = next((other for other in named if other.label == chosen.label), None)
         if twin is not None and twin != chosen:
             raise ValueError(

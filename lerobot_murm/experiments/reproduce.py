@@ -41,7 +41,7 @@ from lerobot_murm.experiments.artifacts import (
     result_path,
     run_dir,
 )
-from lerobot_murm.experiments.best_views import CHOICES, choose_views
+from lerobot_murm.experiments.best_views import CHOICES, choices_markdown, choose_views
 from lerobot_murm.experiments.budget import budget_markdown, choose_budget
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
 from lerobot_murm.experiments.executors import SerialExecutor
@@ -334,15 +334,14 @@ def reproduce(config: ReproduceConfig, executor=None) -> Path:
     for folder in (config.work_dir, config.results_dir):
         check_writable(Path(folder))
     config, choices, waiting = choose_views(config)
-    for label, why in waiting.items():
+    if waiting:
+        label, why = next(iter(waiting.items()))
         raise ValueError(f"cell {label} takes its cameras from another grid's results: {why}")
     out = Path(config.results_dir) / config.name
     with exclusive(out):  # one driver per grid; its jobs lock what they build in the work dir
         if choices:
             out.mkdir(parents=True, exist_ok=True)
-            for label, choice in choices.items():
-                ranking = ", ".join(f"{r['camera']} {r['validation_success']:.0%}" for r in choice["ranking"])
-                print(f"{label}: {'+'.join(choice['chosen'])} (validation at {choice['grid']}'s budget: {ranking})")
+            print(choices_markdown(choices), end="")
             write_atomic(out / CHOICES, (json.dumps(choices, indent=1) + "\n").encode())
         return _run_grid(config, executor, out)
 

@@ -64,6 +64,8 @@ def test_seeds_evaluated_at_different_steps_are_refused():
     [
         ({"cap": 25, "every": 10}, "must be a positive multiple of every"),
         ({"cap": 20, "every": 10, "max_cap": 10}, "max_cap"),
+        ({"cap": 20, "every": 10, "at_least": 15}, "must be multiples of every (10): a budget is one of"),
+        ({"cap": 20, "every": 10, "unless_flat_before": 5}, "must be multiples of every (10): a budget is one of"),
     ],
 )
 def test_a_bad_budget_is_refused_when_the_config_loads(tmp_path, budget, message):

@@ -79,6 +79,11 @@ class BudgetSpec:
             )
         if self.max_cap < self.cap or self.at_least > self.max_cap:
             raise ValueError(f"budget: max_cap ({self.max_cap}) must be at least cap ({self.cap}) and at_least")
+        if self.at_least % self.every or self.unless_flat_before % self.every:
+            raise ValueError(
+                f"budget: at_least ({self.at_least}) and unless_flat_before ({self.unless_flat_before}) must be "
+                f"multiples of every ({self.every}): a budget is one of the validation curves' points"
+            )
 
 
 @dataclass

@@ -284,6 +284,58 @@ def test_simulators_in_this_process_run_the_very_episodes_the_worker_processes_r
     assert not np.array_equal(in_workers[0]["global"], in_workers[-1]["global"])  # the arm moved
 
 
+def _expert_episodes(processes: bool, hold_succeeded: bool) -> tuple[list, np.ndarray]:
+    """Four simulators of an Evaluator through one episode: three driven by the scripted expert
+    (they succeed), the fourth by random actions (it does not). As the evaluation does, a
+    simulator whose episode has succeeded gets NaN actions when `hold_succeeded`. Every step's
+    observations, and the step at which each episode first succeeded."""
+    from lerobot_murm.env import EPISODE_STEPS
+    from lerobot_murm.expert.scripted import ScriptedExpert
+    from lerobot_murm.training.evaluate import Evaluator
+
+    random_actions = np.random.default_rng(0).uniform(-1, 1, (EPISODE_STEPS, 4)).astype(np.float32)
+    experts = [ScriptedExpert("place_in_box") for _ in range(3)]
+    with Evaluator("place_in_box", ["global"], image_size=16, num_envs=4, processes=processes) as ev:
+        observation, _ = ev.envs.reset(seed=[200_000, 200_001, 200_002, 200_003])
+        steps, first_success = [observation], np.full(4, -1)
+        for t in range(EPISODE_STEPS):
+            rows = [{key: observation[key][i] for key in ("agent_pos", "environment_state")} for i in range(3)]
+            action = np.stack([*(e.act(row) for e, row in zip(experts, rows, strict=True)), random_actions[t]])
+            if hold_succeeded:
+                action[first_success >= 0] = np.nan
+            observation, _, _, _, info = ev.envs.step(action.astype(np.float32))
+            steps.append(observation)
+            first_success[(first_success < 0) & np.asarray(info["is_success"], bool)] = t + 1
+    return steps, first_success
+
+
+@pytest.mark.parametrize("processes", [False, True])
+def test_a_succeeded_episode_is_not_simulated_again_and_the_others_run_as_before(processes, monkeypatch):
+    """An evaluation's episode succeeds if it ever succeeds, so its simulator skips the steps after
+    its success (NaN actions): those steps are not simulated, and every step before them and every
+    step of the other simulators is what a run that simulates every step gives, bit for bit."""
+    from lerobot_murm.env.murm_env import MurmEnv
+
+    simulated = []
+    step = MurmEnv.step
+    monkeypatch.setattr(MurmEnv, "step", lambda env, action: simulated.append(1) or step(env, action))
+    full, full_success = _expert_episodes(processes, hold_succeeded=False)
+    steps_full = len(simulated)
+    held, held_success = _expert_episodes(processes, hold_succeeded=True)
+    assert np.array_equal(full_success, held_success)
+    assert list(full_success[:3] > 0) == [True] * 3 and full_success[3] == -1  # the expert's succeed, random's not
+    for i, success_step in enumerate(held_success):
+        last = len(full) - 1 if success_step < 0 else success_step
+        for t in range(len(full)):
+            expected = full[min(t, last)]  # after its success a held simulator repeats that step
+            for key in ("agent_pos", "environment_state"):
+                assert np.array_equal(held[t][key][i], expected[key][i])
+            assert np.array_equal(held[t]["pixels"]["global"][i], expected["pixels"]["global"][i])
+    if not processes:  # in worker processes the counter is theirs
+        episode_steps = len(full) - 1
+        assert len(simulated) - steps_full == sum(s if s > 0 else episode_steps for s in held_success)
+
+
 def test_validation_and_test_seeds_must_be_disjoint(tiny_pipeline, tmp_path):
     from lerobot_murm.training.train import load_train_config
 

@@ -99,7 +99,8 @@ def test_time_left_goes_by_the_runs_usual_rates_not_a_last_slowed_or_paused_one(
 
 def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):
     out = murm_status(tmp_path)
-    assert out.count("| not started |") == 3 and "3 cells with no rate to go by" in out
+    assert out.count("| not started |") == 3 and "3 cells with no rate to go by yet, so no estimate" in out
+    assert " h of one job's time left" not in out  # not "about 0.0 h"
     assert "no validation point yet" in out and not (tmp_path / "curves.png").exists()
 
 

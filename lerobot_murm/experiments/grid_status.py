@@ -140,15 +140,18 @@ def status_markdown(config: ReproduceConfig, cells: list[CellStatus], waiting: d
         )
     known = [h for h in left if h is not None]
     unknown = len(left) - len(known)
-    total = f"about {sum(known):.1f} h of one job's time left"
-    if unknown:
-        total += f", and {unknown} cell{'s' if unknown > 1 else ''} with no rate to go by"
-    if config.budget:
-        total += " (to the cap; the test at the budget comes after)"
+    no_rate = f"{unknown} cell{'s' if unknown > 1 else ''} with no rate to go by"
+    if not known:  # nothing has trained yet: no estimate, not "0.0 h"
+        total = f"{no_rate} yet, so no estimate of the time left."
+    else:
+        total = f"about {sum(known):.1f} h of one job's time left" + (f", and {no_rate}" if unknown else "")
+        if config.budget:
+            total += " (to the cap; the test at the budget comes after)"
+        total += "; with --jobs N, about 1/N of it."
     notes = [
         f"{label}: not in the table yet, its cameras are not chosen: {why}" for label, why in (waiting or {}).items()
     ]
-    return "\n".join(lines + ["", total + "; with --jobs N, about 1/N of it.", *notes]) + "\n"
+    return "\n".join(lines + ["", total, *notes]) + "\n"
 
 
 def plot_status(cells: list[CellStatus], path: Path) -> bool:

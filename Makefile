@@ -41,9 +41,10 @@ tables: $(STAMP)
 	for grid in $(GRIDS); do $(VENV)/bin/murm reproduce --config configs/reproduce/$$grid.yaml --jobs $(JOBS) || exit 1; done
 	$(VENV)/bin/murm report --readme README.md
 
-# Where each grid of the study stands and the hours it has left (reads only; beside a running `make tables`).
+# Where each grid of the study stands and the hours it and the whole study have left, a grid not
+# started costed by the earlier grids' runs (reads only; beside a running `make tables`).
 status: $(STAMP)
-	for grid in $(GRIDS); do $(VENV)/bin/murm status --config configs/reproduce/$$grid.yaml || exit 1; echo; done
+	$(VENV)/bin/murm status $(foreach grid,$(GRIDS),--config configs/reproduce/$(grid).yaml)
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_env.py

@@ -243,17 +243,34 @@ def _reproduce(args: argparse.Namespace) -> None:
 def _status(args: argparse.Namespace) -> None:
     from lerobot_murm.experiments.best_views import choose_views
     from lerobot_murm.experiments.configuration_reproduce import load_reproduce_config
-    from lerobot_murm.experiments.grid_status import grid_status, plot_status, status_markdown
+    from lerobot_murm.experiments.grid_status import (
+        grid_status,
+        hours_left,
+        plot_status,
+        status_markdown,
+        time_left_line,
+    )
 
-    config = load_reproduce_config(args.config, args.overrides)
-    if config.prepare_only:
-        print(f"{config.name}: builds datasets and encoders only, no training run (murm reproduce says where it is)")
-        return
-    config, _, waiting = choose_views(config)
-    cells = grid_status(config)
-    print(status_markdown(config, cells, waiting), end="")
+    if args.plot and len(args.config) > 1:
+        raise ValueError("--plot draws one grid's curves: give one --config with it")
+    grids = []
+    for path in args.config:
+        config = load_reproduce_config(path, args.overrides)
+        if config.prepare_only:
+            print(
+                f"{config.name}: builds datasets and encoders only, no training run (murm reproduce says where it is)"
+            )
+            continue
+        config, _, waiting = choose_views(config)
+        grids.append((config, grid_status(config), waiting))
+    every_cell = [cell for _, cells, _ in grids for cell in cells]  # a later grid's cells costed by earlier ones'
+    for k, (config, cells, waiting) in enumerate(grids):
+        print(("\n" if k else "") + status_markdown(config, cells, waiting, every_cell), end="")
+    if len(grids) > 1:
+        left = [hours_left(cell, every_cell, config) for config, cells, _ in grids for cell in cells]
+        print(f"\nall {len(grids)} grids: {time_left_line(left, 'to their caps; their tests come after')}")
     if args.plot:
-        if plot_status(cells, Path(args.plot)):
+        if plot_status(grids[0][1] if grids else [], Path(args.plot)):
             print(f"validation curves so far: {args.plot}")
         else:
             print("no validation point yet: no figure")
@@ -419,7 +436,12 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Give the grid's own --work_dir=... and --results_dir=... overrides if it ran with them",
     )
     st.add_argument(
-        "--config", required=True, type=_config_file, help="the grid's config, e.g. configs/reproduce/table3.yaml"
+        "--config",
+        required=True,
+        action="append",
+        type=_config_file,
+        help="the grid's config, e.g. configs/reproduce/table3.yaml; given again for each grid of a study "
+        "(cells not started are costed by any grid's like cells, and the time left summed)",
     )
     st.add_argument("--plot", default=None, metavar="PNG", help="also draw the seeds' mean validation curves so far")
     st.set_defaults(func=_status, accepts_overrides=True)

@@ -10,6 +10,7 @@ from lerobot_murm.training.run_folder import EVAL_COLUMNS, LOG_COLUMNS
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import run_command
+from one_line import murm_error
 
 MURM = Path(sys.executable).parent / "murm"
 
@@ -107,3 +108,54 @@ def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):
 def test_status_of_a_grid_that_only_prepares_says_it_trains_nothing(tmp_path):
     out = murm_status(tmp_path, GRID | {"prepare_only": True})
     assert "no training run" in out and "| place_in_box" not in out
+
+
+LATER_GRID = {
+    "name": "later_grid",
+    "tasks": ["place_in_box"],
+    "seeds": [0, 1],
+    "budget": {"cap": 40_000, "every": 10_000, "episodes": 2},
+    "cells": [
+        {"method": "single", "cameras": ["top"], "eval_mask_p": [0.0, 0.5]},
+        {"method": "concat", "cameras": ["global", "adjacent"]},
+    ],
+}
+
+
+def test_status_of_a_studys_grids_costs_a_later_grids_cells_by_an_earlier_ones_and_sums_them(tmp_path):
+    """A study's later grids have not started: their cells are costed like the earlier grid's
+    cells of the same method and camera count (validation by the episode: two masking levels
+    take twice one level's time), and the time left is summed over every grid."""
+    runs = tmp_path / "work" / "runs" / "status_grid" / "place_in_box"
+    for seed in (0, 1):
+        write_run(runs / "single-global" / f"seed{seed}", [10_000, 20_000], [0.5, 1.0], rate=2.0, eval_s=900.0)
+    configs = []
+    for grid in (GRID, LATER_GRID):
+        configs += ["--config", tmp_path / f"{grid['name']}.yaml"]
+        (tmp_path / f"{grid['name']}.yaml").write_text(yaml.safe_dump(grid))
+    folders = [f"--work_dir={tmp_path / 'work'}", f"--results_dir={tmp_path / 'results'}"]
+    out = run_command([MURM, "status", *configs, *folders], tmp_path)
+    assert "status_grid: 0 of 3 cells finished" in out and "later_grid: 0 of 2 cells finished" in out
+    # 40,000 updates at 2 updates/s and four points of 1,800 s (900 s for one masking level): 7.6 h
+    assert status_rows(out)["single-top"] == ["not started", "0", "40,000", "", "7.6"]
+    assert status_rows(out)["concat-global+adjacent"][-1] == "?"  # no run of its kind anywhere
+    # 3.3 + 6.6 (status_grid's single views) + 7.6 h, unrounded 17.4; two cells with no rate
+    assert "all 2 grids: about 17.4 h of one job's time left, and 2 cells with no rate to go by" in out
+
+
+def test_status_draws_one_grids_curves_only(tmp_path, capsys):
+    for grid in (GRID, LATER_GRID):
+        (tmp_path / f"{grid['name']}.yaml").write_text(yaml.safe_dump(grid))
+    code, line = murm_error(
+        [
+            "status",
+            "--config",
+            tmp_path / "status_grid.yaml",
+            "--config",
+            tmp_path / "later_grid.yaml",
+            "--plot",
+            "x.png",
+        ],
+        capsys,
+    )
+    assert code == 2 and line.startswith("murm status: --plot draws one grid's curves: give one --config with it")

@@ -7,9 +7,12 @@ trainer is writing at that moment is skipped, `read_run_csv`), the grid's stored
 results, and its `budget.json`. Time left is one job's: training at the median of the rates
 the run has logged (a sitting shared with other work slows a few of them, not the median) plus
 the validation points still to come at the median seconds its points took (one paused for a
-measurement counts its pause); a cell not
-started yet is costed like a started cell of the same method and camera count, if any. A
-budget grid's test at its budget, after every run reached the cap, is not counted.
+measurement counts its pause); a cell not started yet is costed like a started cell of the same
+method and camera count that trains as many seeds in one job, in this grid or in the others
+`murm status` was given (a study's later grids by its earlier ones), its validation seconds
+scaled to the cell's masking levels, episodes and seeds. A budget grid's test at its budget,
+after every run reached the cap, is not counted; nor is a run a later grid will start from an
+earlier grid's (`reuse.py`), which counts in both.
 """
 
 from __future__ import annotations
@@ -38,12 +41,14 @@ class CellStatus:
     validation: tuple[int, float] | None  # (step, seeds' mean success 0-1) unmasked, at the latest step all share
     steps_per_s: float | None  # the median logged training rate of its slowest seed (evaluations left out)
     eval_s: float | None  # median seconds of its validation points (all masking levels of one)
+    seeds_per_job: int  # seeds one job trains together (a stack), 1 where each seed is its own job
+    episodes_per_point: int  # a validation point's episodes: masking levels x episodes x seeds_per_job
     curves: list[dict] = field(default_factory=list)  # per seed: {"task", "cell", "curve"} as plot_curves reads
 
     @property
-    def family(self) -> tuple[str, int]:
-        """Cells that train at about the same rate: one method on as many cameras."""
-        return self.cell.method, len(self.cell.cameras)
+    def family(self) -> tuple[str, int, int]:
+        """Cells that train at about the same rate: one method on as many cameras, as many seeds a job."""
+        return self.cell.method, len(self.cell.cameras), self.seeds_per_job
 
 
 def _stored(path: Path) -> dict | None:
@@ -95,7 +100,11 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
         for points in evals
         if points
     ]
-    return CellStatus(task, cell, state, step, target, validation, min(rates) if rates else None, eval_s, curves)
+    together = len(config.seeds) if config.stack_seeds and not config.timed else 1
+    episodes = config.budget.episodes if config.budget else config.train.eval_episodes
+    rate = min(rates) if rates else None
+    per_point = len(cell.eval_mask_p) * episodes * together
+    return CellStatus(task, cell, state, step, target, validation, rate, eval_s, together, per_point, curves)
 
 
 def grid_status(config: ReproduceConfig) -> list[CellStatus]:
@@ -108,22 +117,30 @@ def grid_status(config: ReproduceConfig) -> list[CellStatus]:
 
 
 def hours_left(status: CellStatus, cells: list[CellStatus], config: ReproduceConfig) -> float | None:
-    """One job's hours to bring the cell to its target; None where no run has shown a rate."""
+    """One job's hours to bring the cell to its target; None where no run has shown a rate.
+    `cells`: every cell whose rates may stand in for a cell not started (several grids' cells)."""
     if status.state in (FINISHED, AT_CAP):
         return 0.0
     alike = [c for c in cells if c.family == status.family and c.steps_per_s and c.eval_s]
     rate = status.steps_per_s or (statistics.median(c.steps_per_s for c in alike) if alike else None)
-    eval_s = status.eval_s or (statistics.median(c.eval_s for c in alike) if alike else None)
+    eval_s = status.eval_s
+    if eval_s is None and alike:  # by the episode: another cell may validate more masking levels or seeds
+        eval_s = statistics.median(c.eval_s / c.episodes_per_point for c in alike) * status.episodes_per_point
     if rate is None or eval_s is None:
         return None
     every = config.budget.every if config.budget else config.train.eval_every
     seconds = (status.target - status.step) / rate + (status.target // every - status.step // every) * eval_s
-    together = config.stack_seeds and not config.timed  # one job trains all the cell's seeds
-    return seconds / 3600 * (1 if together else len(config.seeds))
+    return seconds / 3600 * len(config.seeds) / status.seeds_per_job
 
 
-def status_markdown(config: ReproduceConfig, cells: list[CellStatus], waiting: dict[str, str] | None = None) -> str:
-    """The status table; `waiting`: cells whose cameras another grid has not chosen yet ({label: why})."""
+def status_markdown(
+    config: ReproduceConfig,
+    cells: list[CellStatus],
+    waiting: dict[str, str] | None = None,
+    peers: list[CellStatus] | None = None,
+) -> str:
+    """The status table; `waiting`: cells whose cameras another grid has not chosen yet ({label: why});
+    `peers`: every cell whose rates may stand in for a cell not started (this grid's and others')."""
     lines = [
         f"{config.name}: {sum(c.state == FINISHED for c in cells)} of {len(cells)} cells finished, "
         f"seeds {config.seeds}",
@@ -131,27 +148,30 @@ def status_markdown(config: ReproduceConfig, cells: list[CellStatus], waiting: d
         "| task | cell | state | step | of | validation success (seeds' mean, at step) | hours left |",
         "|---|---|---|---:|---:|---:|---:|",
     ]
-    left = [hours_left(c, cells, config) for c in cells]
+    left = [hours_left(c, peers or cells, config) for c in cells]
     for c, hours in zip(cells, left, strict=True):
         validation = f"{100 * c.validation[1]:.1f} % ({c.validation[0]:,})" if c.validation else ""
         lines.append(
             f"| {c.task} | {c.cell.label} | {c.state} | {c.step:,} | {c.target:,} | {validation} | "
             f"{'?' if hours is None else f'{hours:.1f}'} |"
         )
-    known = [h for h in left if h is not None]
-    unknown = len(left) - len(known)
-    no_rate = f"{unknown} cell{'s' if unknown > 1 else ''} with no rate to go by"
-    if not known:  # nothing has trained yet: no estimate, not "0.0 h"
-        total = f"{no_rate} yet, so no estimate of the time left."
-    else:
-        total = f"about {sum(known):.1f} h of one job's time left" + (f", and {no_rate}" if unknown else "")
-        if config.budget:
-            total += " (to the cap; the test at the budget comes after)"
-        total += "; with --jobs N, about 1/N of it."
+    total = time_left_line(left, "to the cap; the test at the budget comes after" if config.budget else "")
     notes = [
         f"{label}: not in the table yet, its cameras are not chosen: {why}" for label, why in (waiting or {}).items()
     ]
     return "\n".join(lines + ["", total, *notes]) + "\n"
+
+
+def time_left_line(left: list[float | None], scope: str = "") -> str:
+    """One job's hours left over cells (None: a cell with no rate to go by), in a sentence;
+    `scope` says what the hours cover, in brackets."""
+    known = [h for h in left if h is not None]
+    unknown = len(left) - len(known)
+    no_rate = f"{unknown} cell{'s' if unknown > 1 else ''} with no rate to go by"
+    if not known:  # nothing has trained yet: no estimate, not "0.0 h"
+        return f"{no_rate} yet, so no estimate of the time left."
+    line = f"about {sum(known):.1f} h of one job's time left" + (f", and {no_rate}" if unknown else "")
+    return line + (f" ({scope})" if scope else "") + "; with --jobs N, about 1/N of it."
 
 
 def plot_status(cells: list[CellStatus], path: Path) -> bool:

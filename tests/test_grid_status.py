@@ -110,11 +110,8 @@ def test_status_of_a_grid_that_only_prepares_says_it_trains_nothing(tmp_path):
     assert "no training run" in out and "| place_in_box" not in out
 
 
-LATER_GRID = {
+LATER_GRID = GRID | {  # a study's later grid: other cells, nothing run yet
     "name": "later_grid",
-    "tasks": ["place_in_box"],
-    "seeds": [0, 1],
-    "budget": {"cap": 40_000, "every": 10_000, "episodes": 2},
     "cells": [
         {"method": "single", "cameras": ["top"], "eval_mask_p": [0.0, 0.5]},
         {"method": "concat", "cameras": ["global", "adjacent"]},

@@ -264,11 +264,13 @@ def _status(args: argparse.Namespace) -> None:
         config, _, waiting = choose_views(config)
         grids.append((config, grid_status(config), waiting))
     every_cell = [cell for _, cells, _ in grids for cell in cells]  # a later grid's cells costed by earlier ones'
+    every_left = []
     for k, (config, cells, waiting) in enumerate(grids):
-        print(("\n" if k else "") + status_markdown(config, cells, waiting, every_cell), end="")
+        left = [hours_left(cell, every_cell, config) for cell in cells]
+        every_left += left
+        print(("\n" if k else "") + status_markdown(config, cells, left, waiting), end="")
     if len(grids) > 1:
-        left = [hours_left(cell, every_cell, config) for config, cells, _ in grids for cell in cells]
-        print(f"\nall {len(grids)} grids: {time_left_line(left, 'to their caps; their tests come after')}")
+        print(f"\nall {len(grids)} grids: {time_left_line(every_left, 'to their caps; their tests come after')}")
     if args.plot:
         if plot_status(grids[0][1] if grids else [], Path(args.plot)):
             print(f"validation curves so far: {args.plot}")

@@ -136,11 +136,11 @@ def hours_left(status: CellStatus, cells: list[CellStatus], config: ReproduceCon
 def status_markdown(
     config: ReproduceConfig,
     cells: list[CellStatus],
+    left: list[float | None],
     waiting: dict[str, str] | None = None,
-    peers: list[CellStatus] | None = None,
 ) -> str:
-    """The status table; `waiting`: cells whose cameras another grid has not chosen yet ({label: why});
-    `peers`: every cell whose rates may stand in for a cell not started (this grid's and others')."""
+    """The status table; `left`: each cell's `hours_left`; `waiting`: cells whose cameras another
+    grid has not chosen yet ({label: why})."""
     lines = [
         f"{config.name}: {sum(c.state == FINISHED for c in cells)} of {len(cells)} cells finished, "
         f"seeds {config.seeds}",
@@ -148,7 +148,6 @@ def status_markdown(
         "| task | cell | state | step | of | validation success (seeds' mean, at step) | hours left |",
         "|---|---|---|---:|---:|---:|---:|",
     ]
-    left = [hours_left(c, peers or cells, config) for c in cells]
     for c, hours in zip(cells, left, strict=True):
         validation = f"{100 * c.validation[1]:.1f} % ({c.validation[0]:,})" if c.validation else ""
         lines.append(

@@ -43,6 +43,22 @@ RECIPE = ["--task", "place_in_box", "--cameras", "global,active", "--image-size"
 SUMMARY = "meta/murm_collection.json"
 
 
+def unbroken_collection(root: Path, episodes: int, flush_every: int) -> Path:
+    """The collection a faulted one must end as: RECIPE's, collected in one go."""
+    collect(
+        CollectConfig(
+            task="place_in_box",
+            root=root,
+            episodes=episodes,
+            workers=1,
+            cameras=("global", "active"),
+            image_size=16,
+            flush_every=flush_every,
+        )
+    )
+    return root
+
+
 def disk_full_past(limit: int) -> Callable[[], None]:
     """A child process's full disk, simulated without privileges by a file-size limit: writes
     past `limit` bytes fail with EFBIG, as they would with ENOSPC (not a killed process)."""
@@ -126,18 +142,7 @@ def collect_until_killed(args: list[str], root: Path, rng: random.Random) -> Non
 @pytest.mark.slow
 def test_kill_9_at_random_points_then_resume_gives_the_unbroken_dataset(tmp_path):
     episodes, flush_every = 12, 2
-    reference = tmp_path / "unbroken"
-    collect(
-        CollectConfig(
-            task="place_in_box",
-            root=reference,
-            episodes=episodes,
-            workers=1,
-            cameras=("global", "active"),
-            image_size=16,
-            flush_every=flush_every,
-        )
-    )
+    reference = unbroken_collection(tmp_path / "unbroken", episodes, flush_every)
 
     root, rng = tmp_path / "killed", random.Random(16)
     collect_until_killed(murm_collect(root, episodes, flush_every, resume=False), root, rng)
@@ -186,18 +191,7 @@ def test_a_full_disk_mid_collection_loses_only_the_unflushed_episodes(tmp_path):
     """The disk fills while a data file grows (`disk_full_past`). The flushed episodes stay;
     after making room, --resume ends with the unbroken dataset."""
     episodes, flush_every = 6, 2
-    reference = tmp_path / "unbroken"
-    collect(
-        CollectConfig(
-            task="place_in_box",
-            root=reference,
-            episodes=episodes,
-            workers=1,
-            cameras=("global", "active"),
-            image_size=16,
-            flush_every=flush_every,
-        )
-    )
+    reference = unbroken_collection(tmp_path / "unbroken", episodes, flush_every)
     root = tmp_path / "ds"
     command = [str(MURM), "collect", *RECIPE, "--root", str(root), "--workers", "1"]
     first = run(command + ["--episodes", "2", "--flush-every", "2"], timeout=300)

@@ -6,7 +6,6 @@ resolution), so everything above the HTTP boundary is the real code path.
 """
 
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -17,6 +16,9 @@ import torch
 from lerobot_murm.collection import CollectConfig, collect
 from lerobot_murm.expert import PAPER_NOISE_STD
 from lerobot_murm.publishing import pull_dataset, push_dataset
+
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run
 
 MURM = Path(sys.executable).parent / "murm"
 
@@ -66,7 +68,7 @@ def test_without_a_reachable_hub_push_and_pull_fail_with_a_clear_message(collect
         ["push", "--root", str(collected), "--repo-id", "tester/x"],
         ["pull", "--repo-id", "tester/x", "--root", str(tmp_path / "x")],
     ):
-        result = subprocess.run([str(MURM), *args], capture_output=True, text=True, env=env, timeout=180)
+        result = run([MURM, *args], env=env, timeout=180)
         assert result.returncode == 1, result.stderr[-2000:]
         last = result.stderr.strip().splitlines()[-1]
         assert last.startswith(f"murm {args[0]}: could not") and "unreachable or refused" in last, last

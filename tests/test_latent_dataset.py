@@ -3,6 +3,7 @@ LeRobotDataset and `lerobot-train`, the same transitions as `murm train`, Hub pu
 `lerobot-train` under `accelerate launch` with two processes."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -24,7 +25,7 @@ from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_dataset import read_latent_caches
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run_command
+from commands import OFFLINE, run, run_command
 
 BIN = Path(sys.executable).parent
 SCRIPTS = Path(__file__).parents[1] / "scripts"
@@ -105,7 +106,7 @@ def test_codes_of_other_encoders_are_refused(latents):
 def test_murm_encode_will_not_overwrite_a_folder(tiny_pipeline, latents):
     root, encoders = tiny_pipeline
     args = [BIN / "murm", "encode", "--dataset", root, "--encoders", encoders / "global", "--to-dataset", latents]
-    result = subprocess.run([str(a) for a in args], capture_output=True, text=True, cwd=latents.parent)
+    result = run(args, timeout=300, cwd=latents.parent, env={**os.environ, **OFFLINE})
     assert result.returncode != 0 and "exists" in result.stderr and "Traceback" not in result.stderr
 
 
@@ -199,6 +200,12 @@ def test_lerobot_train_learns_from_the_latent_dataset_and_lerobot_eval_runs_its_
     assert json.loads((out / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
 
 
+def strip_of_one_policy(policy: Path, out: Path, timeout: int) -> subprocess.CompletedProcess:
+    """scripts/rollout_strip.py on one checkpoint, its exit and output returned, not checked."""
+    args = [sys.executable, SCRIPTS / "rollout_strip.py", "--task", "place_in_box", "--policy", f"x={policy}"]
+    return run(args + ["--out", out], timeout=timeout, env={**os.environ, **OFFLINE})
+
+
 def test_rollout_strip_draws_each_checkpoint_on_the_same_episode(lerobot_trained, tmp_path):
     from PIL import Image
 
@@ -231,39 +238,11 @@ def test_rollout_strip_draws_each_checkpoint_on_the_same_episode(lerobot_trained
     first, second = strip[18:274], strip[274 + 18 :]
     np.testing.assert_array_equal(first, second)  # one policy, one episode seed: the same frames
     assert not np.array_equal(first[:, :256], first[:, 512:])  # the scene changes over the episode
-    bad = subprocess.run(
-        [
-            sys.executable,
-            SCRIPTS / "rollout_strip.py",
-            "--task",
-            "place_in_box",
-            "--policy",
-            f"x={tmp_path}",
-            "--out",
-            out,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    bad = strip_of_one_policy(tmp_path, out, timeout=120)
     assert bad.returncode != 0 and "expected LABEL=CHECKPOINT" in bad.stderr and "Traceback" not in bad.stderr
     (tmp_path / "not_a_policy").mkdir()
     (tmp_path / "not_a_policy" / "config.json").write_text('{"cameras": ["global"]}')
-    bad = subprocess.run(
-        [
-            sys.executable,
-            SCRIPTS / "rollout_strip.py",
-            "--task",
-            "place_in_box",
-            "--policy",
-            f"x={tmp_path / 'not_a_policy'}",
-            "--out",
-            out,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    bad = strip_of_one_policy(tmp_path / "not_a_policy", out, timeout=300)
     assert bad.returncode != 0 and "Traceback" not in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1 and bad.stderr.startswith("rollout_strip: lerobot-eval failed on ")
 

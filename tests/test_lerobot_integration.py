@@ -10,14 +10,16 @@ import av
 import numpy as np
 import pytest
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import OFFLINE, run as run_until
+
 BIN = Path(sys.executable).parent
 HELPERS = Path(__file__).parent / "helpers"
 
 
 def run(args: list[str], cwd: Path, timeout: int = 300) -> subprocess.CompletedProcess:
     """Run a command from a neutral folder (so nothing is imported from the repo by accident)."""
-    env = {**os.environ, "HF_HUB_OFFLINE": "1", "WANDB_MODE": "disabled"}
-    result = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    result = run_until(args, cwd=cwd, env={**os.environ, **OFFLINE}, timeout=timeout)
     assert result.returncode == 0, f"{args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
     return result
 
@@ -94,6 +96,6 @@ def test_lerobot_eval_runs_a_policy_in_the_murm_env_with_async_batches(tmp_path)
 )
 def test_lerobot_cli_reports_bad_env_arguments_clearly(tmp_path, flag, message):
     args = [str(BIN / "lerobot-eval"), "--policy.path=none", "--env.type=murm", flag]
-    result = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    result = run_until(args, cwd=tmp_path, env={**os.environ, **OFFLINE}, timeout=120)
     assert result.returncode != 0
     assert message in result.stdout + result.stderr

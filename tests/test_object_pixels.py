@@ -4,7 +4,6 @@ simulated again, reconstruction error on the object's pixels (`murm check-encode
 import json
 import os
 import shutil
-import subprocess
 import sys
 
 import numpy as np
@@ -14,6 +13,9 @@ from lerobot_murm.env.objects import OBJECT_COLOURS
 from lerobot_murm.features import goal_key
 from lerobot_murm.vqvae import object_pixels
 from lerobot_murm.vqvae.object_pixels import MIN_VISIBLE_PIXELS, object_metrics
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "helpers"))
+from commands import run
 
 MURM = os.path.join(os.path.dirname(sys.executable), "murm")
 
@@ -52,7 +54,7 @@ def test_object_metrics_score_the_object_apart_from_the_background():
 def check_encoders(dataset, encoders, cwd):
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     args = [MURM, "check-encoders", "--dataset", str(dataset), "--encoders", *map(str, encoders)]
-    return subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    return run(args, cwd=cwd, env=env, timeout=600)
 
 
 def test_check_encoders_scores_every_held_out_frame_on_the_objects_pixels(tiny_pipeline, tmp_path):

@@ -17,7 +17,7 @@ import torch
 import yaml
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
-from commands import run_command
+from commands import OFFLINE, run, run_command
 from quiet import assert_quiet
 
 BIN = Path(sys.executable).parent
@@ -148,12 +148,11 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
         assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]
     assert json.loads((run_dir / "final_eval.json").read_text())["wall_s"] > 1000  # every sitting counts
     assert json.loads((run_dir / "final_eval_6.json").read_text()) == summary
-    fewer = subprocess.run(
-        [str(BIN / "murm"), "train", "--config", str(config), "--steps=4"],
+    fewer = run(
+        [BIN / "murm", "train", "--config", config, "--steps=4"],
         cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        env={**os.environ, "HF_HUB_OFFLINE": "1"},
+        env={**os.environ, **OFFLINE},
+        timeout=300,
     )
     assert fewer.returncode != 0 and "is trained to 8 steps, more than the 4 asked" in fewer.stderr
     assert "Traceback" not in fewer.stderr

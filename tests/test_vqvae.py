@@ -21,6 +21,9 @@ from lerobot_murm.vqvae.latent_cache import build_latent_cache
 from lerobot_murm.vqvae.latent_distance import distance_statistics
 from lerobot_murm.vqvae.train import train_vqvae
 
+sys.path.insert(0, str(Path(__file__).parent / "helpers"))
+from commands import run
+
 MURM = Path(sys.executable).parent / "murm"
 REPO = "local/murm_pick_up"
 TINY = VQVAEConfig(
@@ -173,35 +176,12 @@ def test_distance_statistics_suggest_an_epsilon_between_the_two_distributions(da
 
 def test_the_cli_trains_and_encodes(dataset_root, tmp_path):
     out = tmp_path / "enc"
-    run = [
-        str(MURM),
-        "train-vqvae",
-        "--dataset",
-        str(dataset_root),
-        "--camera",
-        "top",
-        "--steps",
-        "5",
-        "--out",
-        str(out),
-    ]
-    result = subprocess.run(run + ["--batch-size", "8"], capture_output=True, text=True, timeout=300)
+    train = [MURM, "train-vqvae", "--dataset", dataset_root, "--camera", "top", "--steps", "5", "--out", out]
+    result = run(train + ["--batch-size", "8"], timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     assert "held-out PSNR" in result.stdout
-    result = subprocess.run(
-        [
-            str(MURM),
-            "encode",
-            "--dataset",
-            str(dataset_root),
-            "--encoders",
-            str(out),
-            "--cache-dir",
-            str(tmp_path / "c"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    result = run(
+        [MURM, "encode", "--dataset", dataset_root, "--encoders", out, "--cache-dir", tmp_path / "c"], timeout=300
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert (tmp_path / "c" / "epsilon.json").exists() and (tmp_path / "c" / "latent_distances.png").exists()
@@ -242,7 +222,7 @@ def test_a_stopped_training_resumes_to_the_same_encoder_as_an_unbroken_one(datas
     assert torch.load(out / "training_state.pt", weights_only=True)["step"] == stopped["steps"]  # no code in it
     assert VQVAE.load(out).config.steps == steps  # the encoder so far is usable
 
-    resumed = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    resumed = run(command, timeout=300)
     assert resumed.returncode == 0, resumed.stderr[-2000:]
     assert f"resuming from step {stopped['steps']}" in resumed.stdout
     finished = json.loads((out / "metrics.json").read_text())

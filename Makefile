@@ -34,17 +34,20 @@ test-fast: $(STAMP)
 # Study v2: Tables 3 and 4 first (they carry the claims; the hindsight grid of issue 44 between
 # them costs two cells, Table 4 takes its other two), then 6, 7, 1, 2, 5; each later grid
 # starting the runs it shares from an earlier one's (Table 4 <- hindsight, Table 2 <- Table 3);
-# stop it at any time, it resumes where it was.
+# stop it at any time, it resumes where it was. WORK_DIR holds the datasets, caches and runs
+# (tens of GB; a finished run is tested from the policies kept there, so put it on a disk that
+# outlives the machine's sessions).
 GRIDS := prepare table3 hindsight table4 paper_budget table6 table7 table1 table2 table5
 JOBS := 2
+WORK_DIR := outputs/murm
 tables: $(STAMP)
-	for grid in $(GRIDS); do $(VENV)/bin/murm reproduce --config configs/reproduce/$$grid.yaml --jobs $(JOBS) || exit 1; done
+	for grid in $(GRIDS); do $(VENV)/bin/murm reproduce --config configs/reproduce/$$grid.yaml --jobs $(JOBS) --work_dir=$(WORK_DIR) || exit 1; done
 	$(VENV)/bin/murm report --readme README.md
 
 # Where each grid of the study stands and the hours it and the whole study have left, a grid not
 # started costed by the earlier grids' runs (reads only; beside a running `make tables`).
 status: $(STAMP)
-	$(VENV)/bin/murm status $(foreach grid,$(GRIDS),--config configs/reproduce/$(grid).yaml)
+	$(VENV)/bin/murm status $(foreach grid,$(GRIDS),--config configs/reproduce/$(grid).yaml) --work_dir=$(WORK_DIR)
 
 bench: $(STAMP)
 	$(VENV)/bin/python benchmarks/bench_env.py

@@ -61,8 +61,8 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
     runs = [run_dir(config, task, cell, seed) for seed in config.seeds]
     target = cap if config.budget else config.cell_steps(cell)
     recipes = [run_recipe(config, task, cell, seed) for seed in config.seeds]
-    results = [_stored(result_path(config, task, cell, seed)) for seed in config.seeds]
     if config.budget is None:  # as the grid keeps a stored run (an earlier study's is trained again)
+        results = [_stored(result_path(config, task, cell, seed)) for seed in config.seeds]
         finished = all(
             r is not None and kept_as_finished(r.get("recipe"), rc, cell)
             for r, rc in zip(results, recipes, strict=True)

@@ -16,6 +16,9 @@ import pytest
 import torch
 import yaml
 
+from lerobot_murm.policy.precision import cpu_description, resolve_precision
+from lerobot_murm.training.run_folder import DTYPE_NAMES, read_sittings
+
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import OFFLINE, run, run_command
 from quiet import assert_quiet
@@ -148,6 +151,13 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
         assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]
     assert json.loads((run_dir / "final_eval.json").read_text())["wall_s"] > 1000  # every sitting counts
     assert json.loads((run_dir / "final_eval_6.json").read_text()) == summary
+    # each sitting that trained it: where it started, the dtype `precision: auto` gave there and
+    # the machine (a finished run read back is no sitting)
+    dtype = DTYPE_NAMES[resolve_precision("auto", torch.device("cpu"))]
+    assert [(s["step"], s["precision"], s["machine"]) for s in read_sittings(run_dir)] == [
+        (0, dtype, cpu_description()),
+        (6, dtype, cpu_description()),
+    ]
     fewer = run(
         [BIN / "murm", "train", "--config", config, "--steps=4"],
         cwd=tmp_path,

@@ -225,7 +225,7 @@ def test_a_run_is_taken_from_another_grid_only_for_the_same_recipe_and_masking_l
 
 
 def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuses_none_of_them(tmp_path):
-    from lerobot_murm.experiments.reuse import finished_elsewhere, kept_as_finished, run_recipe
+    from lerobot_murm.experiments.reuse import finished_elsewhere, kept_as_finished, run_recipe, stored_at
 
     table4 = load_reproduce_config(REPO / "configs/reproduce/table4.yaml", [f"--results_dir={tmp_path}"])
     table3 = load_reproduce_config(REPO / "configs/reproduce/table3.yaml", [f"--results_dir={tmp_path}"])
@@ -233,13 +233,21 @@ def test_a_grid_keeps_its_runs_where_auto_precision_resolves_otherwise_and_reuse
     recipe = run_recipe(table4, "place_in_box", single, 0)
     other = "torch.float32" if recipe["precision"] == "torch.bfloat16" else "torch.bfloat16"
     on_another_machine = recipe | {"precision": other}  # a bf16 CPU's run read back on one without, or back
-    assert kept_as_finished(recipe, recipe, single) and kept_as_finished(on_another_machine, recipe, single)
-    assert not kept_as_finished(on_another_machine | {"train": recipe["train"] | {"steps": 1}}, recipe, single)
+    assert kept_as_finished(recipe, recipe) and kept_as_finished(on_another_machine, recipe)
+    assert not kept_as_finished(on_another_machine | {"train": recipe["train"] | {"steps": 1}}, recipe)
+    # a budget grid's curve or test stored on the other machine stands too (not set aside, so not
+    # trained or tested again each time the study changes machines)
+    curve = tmp_path / "curves" / "place_in_box__single-global__seed0.json"
+    curve.parent.mkdir()
+    curve.write_text(json.dumps({"steps": 150_000, "recipe": on_another_machine}))
+    assert stored_at(curve, recipe, 150_000) and curve.exists()
     for asked in ("fp32", "bf16"):  # a cell that asks for a precision trains again in it
         cell = replace(single, policy={"precision": asked})
         own = run_recipe(table4, "place_in_box", cell, 0)
         flipped = own | {"precision": "torch.bfloat16" if asked == "fp32" else "torch.float32"}
-        assert kept_as_finished(own, own, cell) and not kept_as_finished(flipped, own, cell)
+        assert kept_as_finished(own, own) and not kept_as_finished(flipped, own)
+        curve.write_text(json.dumps({"steps": 150_000, "recipe": flipped}))
+        assert not stored_at(curve, own, 150_000) and not curve.exists()  # set aside
 
     # another grid takes only a run of the very same recipe, precision included
     runs = tmp_path / "table4" / "runs"
@@ -415,6 +423,11 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
         "wall_s": 3960.0,
         "seeds_together": 3,
         "adopted_from": {"from": "/w/runs/table2/pick_up/single-side/seed0", "step": 10000, "wall_s": 360.0},
+        # bf16 on one machine, resumed there, then on one without native bf16
+        "sittings": [
+            {"step": step, "precision": dtype, "machine": "AMD EPYC", "started": "2026-12-08T01:00:00+00:00"}
+            for step, dtype in ((0, "bf16"), (10000, "bf16"), (60000, "fp32"))
+        ],
     }
     for cell, reused in (
         ("single-global", {"reused_from": "table4/pick_up__single-global__seed0"}),
@@ -437,6 +450,7 @@ def test_the_report_puts_a_grids_discussion_under_its_table_and_names_reused_run
     assert "from there): 0.4 h." in rest
     assert "| cpu | bf16 | top 3a2b1039 |" in rest  # which precision and which draw of the encoders
     assert "| cpu | - | - |" in rest  # a run from before they were recorded
+    assert "| cpu | bf16, fp32 from 60,000 | - |" in rest  # a run that moved between machines
     assert (grid / "table.csv").exists() and (grid / "curves.png").exists()
     assert (grid / "vs_paper.png").exists() and "![ours beside the paper](results/table3/vs_paper.png)" in table
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from lerobot_murm.experiments.artifacts import result_path, run_dir
 from lerobot_murm.experiments.configuration_reproduce import CellSpec, ReproduceConfig
 from lerobot_murm.experiments.results import plot_curves, read_result
-from lerobot_murm.experiments.reuse import kept_as_finished, ready_to_test, run_recipe, same_recipe, tested_at_budget
+from lerobot_murm.experiments.reuse import kept_as_finished, ready_to_test, run_recipe, same_run, tested_at_budget
 from lerobot_murm.training.learning_curve import read_run_csv, validation_curve
 
 NOT_STARTED, TRAINING, AT_CAP, FINISHED = "not started", "training", "at the cap", "finished"
@@ -64,8 +64,7 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
     if config.budget is None:  # as the grid keeps a stored run (an earlier study's is trained again)
         results = [_stored(result_path(config, task, cell, seed)) for seed in config.seeds]
         finished = all(
-            r is not None and kept_as_finished(r.get("recipe"), rc, cell)
-            for r, rc in zip(results, recipes, strict=True)
+            r is not None and kept_as_finished(r.get("recipe"), rc) for r, rc in zip(results, recipes, strict=True)
         )
     else:
         finished = all(tested_at_budget(config, task, cell, seed) for seed in config.seeds)
@@ -73,7 +72,7 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
     stored_curves = [_stored(curves_dir / result_path(config, task, cell, seed).name) for seed in config.seeds]
     at_cap = config.budget is not None and all(
         c is not None
-        and same_recipe(c.get("recipe"), rc)
+        and same_run(c.get("recipe"), rc)
         and c["steps"] >= cap
         and ready_to_test(config, task, cell, seed, cap)  # as the grid judges it: else it trains again
         for seed, c, rc in zip(config.seeds, stored_curves, recipes, strict=True)

@@ -219,7 +219,15 @@ def _values(values: list[float] | None) -> str:
 
 
 def precision_text(run: dict) -> str:
-    """'bf16' / 'fp32': the dtype the run trained in, as its recipe records it."""
+    """'bf16' / 'fp32': the dtype the run trained in, by its sittings where it recorded them
+    ('bf16, fp32 from 60,000' for a run that moved to a machine without native bf16), else as
+    its recipe records it."""
+    changes = []  # (first step, dtype) where the dtype changed
+    for sitting in run.get("sittings") or []:
+        if not changes or changes[-1][1] != sitting["precision"]:
+            changes.append((sitting["step"], sitting["precision"]))
+    if changes:
+        return ", ".join([changes[0][1]] + [f"{dtype} from {step:,}" for step, dtype in changes[1:]])
     dtype = (run.get("recipe") or {}).get("precision")
     return {"torch.bfloat16": "bf16", "torch.float32": "fp32"}.get(dtype, dtype or "-")
 

@@ -62,6 +62,7 @@ from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.precision import cpu_description
 from lerobot_murm.training.learning_curve import read_run_csv, validation_curve
+from lerobot_murm.training.run_folder import read_sittings
 from lerobot_murm.training.train import TrainConfig, test_kept, train_seeds
 from lerobot_murm.vqvae.latent_distance import (
     epsilon_at_quantile,
@@ -205,6 +206,8 @@ def run_result(
         "wall_s": summary.get("wall_s", round(time.perf_counter() - start, 1)),
         "train_steps_per_s": _median_steps_per_s(out / "log.csv"),
         "hardware": hardware(),
+        # each sitting's start, precision and machine: a long run moves between machines
+        "sittings": read_sittings(out),
         "curve": _read_curve(out / "eval.csv"),
         "recipe": recipe,
         # trained side by side with this many seeds (their shared wall time and steps/s above)
@@ -432,7 +435,7 @@ def _run_grid(config: ReproduceConfig, executor, out: Path) -> Path:
         path, recipe = result_path(config, task, cell, seed), run_recipe(config, task, cell, seed)
         if path.exists():
             stored = read_result(path)
-            if stored is not None and kept_as_finished(stored.get("recipe"), recipe, cell):
+            if stored is not None and kept_as_finished(stored.get("recipe"), recipe):
                 continue
             why = "it does not read (torn)" if stored is None else "its cell changed since it ran"
             print(

@@ -1,5 +1,5 @@
 """The rules for reusing earlier work: a run's recipe (everything that decides what it trains),
-whether a stored result was trained by it (`same_recipe`, `kept_as_finished`), a finished run
+whether a stored result was trained by it (`same_recipe`, `same_run`, `kept_as_finished`), a finished run
 of another grid taken instead of training it again (`finished_elsewhere`: Table 3's global
 camera is Table 4's single-view baseline, when trained on the very same encoders), results
 their cell no longer produces set aside, and the grid a results folder records
@@ -47,16 +47,22 @@ def same_recipe(stored: dict | None, recipe: dict) -> bool:
     return stored | {"policy": policy_overrides(stored["method"], stored["cameras"], stored["policy"])} == recipe
 
 
-def kept_as_finished(stored: dict | None, recipe: dict, cell: CellSpec) -> bool:
-    """Whether a grid's stored run stands as its cell's finished run: trained by the cell's
-    recipe, or by it on a machine where `precision: auto` resolved otherwise (bf16 on CPUs
-    with native bf16, fp32 elsewhere; the `precision` grid found no difference beyond the
-    seeds' spread). Without this a grid moved to another machine would set aside and train
-    again every run it has. Each run records its precision; another grid's runs are taken
-    only for the very same recipe (`finished_elsewhere`)."""
-    if stored is None or same_recipe(stored, recipe):  # None: an earlier setting's run, kept as it is
-        return True
-    return "precision" not in cell.policy and same_recipe(stored | {"precision": recipe["precision"]}, recipe)
+def same_run(stored: dict | None, recipe: dict) -> bool:
+    """Whether a grid's stored run is its cell's run: trained by the cell's recipe, or by it on
+    a machine where `precision: auto` resolved otherwise (bf16 on CPUs with native bf16, fp32
+    elsewhere; the `precision` grid found no difference beyond the seeds' spread). Without this
+    a grid that moves between machines would set aside, and train or test again, every run it
+    has. A cell that names its precision keeps it. Each run records its sittings' precision and
+    machine; another grid's runs are taken only for the very same recipe (`finished_elsewhere`)."""
+    if stored is None or same_recipe(stored, recipe):
+        return stored is not None
+    return "precision" not in recipe["policy"] and same_recipe(stored | {"precision": recipe["precision"]}, recipe)
+
+
+def kept_as_finished(stored: dict | None, recipe: dict) -> bool:
+    """Whether a grid's stored run stands as its cell's finished run (`same_run`); a run of an
+    earlier setting that recorded no recipe is kept as it is."""
+    return stored is None or same_run(stored, recipe)
 
 
 def set_aside(path: Path) -> Path:
@@ -136,7 +142,7 @@ def stored_at(path: Path, recipe: dict, steps: int) -> bool:
     `recipe`. A result of another recipe (its cell changed, or an earlier study's run of the
     same name) is set aside; its run trains again, from its checkpoint where it can."""
     stored = read_result(path) if path.exists() else None
-    if stored is not None and not same_recipe(stored.get("recipe"), recipe):
+    if stored is not None and not same_run(stored.get("recipe"), recipe):
         print(f"{path.name}: another recipe than its cell's (set aside in {set_aside(path).parent})", flush=True)
         return False
     return stored is not None and stored["steps"] == steps
@@ -147,7 +153,7 @@ def tested_at_budget(config: ReproduceConfig, task: str, cell: CellSpec, seed: i
     path = result_path(config, task, cell, seed)
     result = read_result(path) if path.exists() else None
     recipe = run_recipe(config, task, cell, seed)
-    return result is not None and same_recipe(result.get("recipe"), budget_recipe(recipe, result["steps"]))
+    return result is not None and same_run(result.get("recipe"), budget_recipe(recipe, result["steps"]))
 
 
 def ready_to_test(config: ReproduceConfig, task: str, cell: CellSpec, seed: int, cap: int) -> bool:

@@ -3,14 +3,16 @@ leaves one complete checkpoint), the policies kept at chosen steps, and the summ
 finished run. `train.py` drives the training; this module is what it leaves on disk.
 
 Folder: `train_config.yaml`, `log.csv` (LOG_COLUMNS), `eval.csv` (EVAL_COLUMNS),
-`learning_curve.png`, `checkpoints/last/` (policy + `training_state.pt`),
+`sittings.csv` (SITTINGS_COLUMNS), `learning_curve.png`, `checkpoints/last/` (policy + `training_state.pt`),
 `checkpoints/<step>/pretrained_model` (kept policies), `final_eval.json`.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import shutil
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,6 +21,7 @@ import torch
 from lerobot_murm.checkpointing import (
     COMPLETE_MARK,
     CheckpointError,
+    append_rows,
     last_logged_step,
     load_state,
     recover,
@@ -27,6 +30,7 @@ from lerobot_murm.checkpointing import (
     swap_in,
 )
 from lerobot_murm.policy.modeling_murm import MurmPolicy
+from lerobot_murm.policy.precision import cpu_description
 from lerobot_murm.policy.processor_murm import make_murm_pre_post_processors
 
 if TYPE_CHECKING:
@@ -34,6 +38,32 @@ if TYPE_CHECKING:
 
 LOG_COLUMNS = ["step", "value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight", "steps_per_s"]
 EVAL_COLUMNS = ["step", "mask_p", "success_rate", "episodes", "seconds", "split", "mask_mode"]
+SITTINGS_COLUMNS = ["step", "precision", "machine", "started"]
+SITTINGS_FILE = "sittings.csv"
+DTYPE_NAMES = {torch.bfloat16: "bf16", torch.float32: "fp32"}
+
+
+def record_sitting(run_dir: Path, step: int, dtype: torch.dtype, device: torch.device) -> None:
+    """A row for a sitting that trains the run on from `step`: the dtype `precision: auto`
+    resolved to on its machine, and the machine. A long run moves between machines (bf16 on
+    CPUs with native bf16, fp32 elsewhere), so its record says which part trained how."""
+    machine = torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_description()
+    row = {
+        "step": step,
+        "precision": DTYPE_NAMES[dtype],
+        "machine": machine,
+        "started": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    append_rows(Path(run_dir) / SITTINGS_FILE, SITTINGS_COLUMNS, [row])
+
+
+def read_sittings(run_dir: Path) -> list[dict]:
+    """The run's sittings in order (`record_sitting`); [] for a run from before they were recorded."""
+    path = Path(run_dir) / SITTINGS_FILE
+    if not path.exists():
+        return []
+    with path.open(newline="") as f:
+        return [row | {"step": int(row["step"])} for row in csv.DictReader(f)]
 
 
 def save_checkpoint(

@@ -7,7 +7,8 @@ target update as under `lerobot-train`; checkpoints are LeRobot's format
 (`pretrained_model/` with the processors), so `lerobot-eval` loads them.
 
 Output folder: `train_config.yaml`, `log.csv` (losses), `eval.csv` (success rate per
-evaluation and masking level), `learning_curve.png`, `checkpoints/last/` (policy +
+evaluation and masking level), `sittings.csv` (where each sitting started, its precision and
+machine), `learning_curve.png`, `checkpoints/last/` (policy +
 `training_state.pt`, written before every evaluation so an interrupted run resumes there,
 with the evaluation a stop cut short first),
 and `final_eval.json` (`run_folder.py` writes and reads these files).
@@ -44,6 +45,7 @@ from lerobot_murm.env import TASK_NAMES
 from lerobot_murm.locking import exclusive
 from lerobot_murm.policy.configuration_murm import MurmConfig
 from lerobot_murm.policy.modeling_murm import LOGGED, MurmPolicy
+from lerobot_murm.policy.precision import resolve_precision
 from lerobot_murm.policy.replay import LatentReplay, replay_for_dataset
 from lerobot_murm.training.cuda_graph import CudaGraph, Updates, make_capturable
 from lerobot_murm.training.evaluate import (
@@ -57,9 +59,11 @@ from lerobot_murm.training.learning_curve import plot_learning_curve, read_run_c
 from lerobot_murm.training.run_folder import (
     EVAL_COLUMNS,
     LOG_COLUMNS,
+    SITTINGS_FILE,
     finished_summary,
     keep_policy,
     kept_policy,
+    record_sitting,
     resume_state,
     save_checkpoint,
 )
@@ -261,9 +265,10 @@ def _open_run(config: TrainConfig, state: dict | None, dataset, replay: LatentRe
         policy.load_state_dict(state["policy"])
         generator.set_state(state["generator"])
         run.step, run.earlier_s, run.optimizer_state = state["step"], state.get("elapsed_s", 0.0), state["optimizer"]
-        for name in ("log.csv", "eval.csv"):
+        for name in ("log.csv", "eval.csv", SITTINGS_FILE):
             set_aside_rows_after(run.out / name, run.step)
         print(f"resuming from step {run.step} ({run.last})")
+    record_sitting(run.out, run.step, resolve_precision(config.policy.precision, device), device)
     write_config(config, run.out / "train_config.yaml")
     return run
 

@@ -151,12 +151,12 @@ def test_murm_train_writes_curves_and_a_checkpoint_lerobot_eval_loads_and_resume
         assert [int(r["step"]) for r in csv.DictReader(f)] == [2, 4, 6, 8]
     assert json.loads((run_dir / "final_eval.json").read_text())["wall_s"] > 1000  # every sitting counts
     assert json.loads((run_dir / "final_eval_6.json").read_text()) == summary
-    # each sitting that trained it: where it started, the dtype `precision: auto` gave there and
-    # the machine (a finished run read back is no sitting)
+    # each sitting that trained it: where it started, the dtype `precision: auto` gave there, the
+    # seeds stacked with it and the machine (a finished run read back is no sitting)
     dtype = DTYPE_NAMES[resolve_precision("auto", torch.device("cpu"))]
-    assert [(s["step"], s["precision"], s["machine"]) for s in read_sittings(run_dir)] == [
-        (0, dtype, cpu_description()),
-        (6, dtype, cpu_description()),
+    assert [(s["step"], s["precision"], s["seeds_together"], s["machine"]) for s in read_sittings(run_dir)] == [
+        (0, dtype, 1, cpu_description()),
+        (6, dtype, 1, cpu_description()),
     ]
     fewer = run(
         [BIN / "murm", "train", "--config", config, "--steps=4"],
@@ -400,6 +400,12 @@ def test_seeds_trained_side_by_side_write_what_each_would_alone_and_a_lagging_se
         [BIN / "murm", "train", "--config", config, *policy, "--seeds=[0,1]", "--stack=true"], cwd=tmp_path
     )
     assert "resuming from step 4" in out and "training seeds 0, 1 side by side from step 4" in out
+    # seed 0's first sitting trained it alone, the second stacked with seed 1; seed 1 has only that one
+    assert [(s["step"], s["precision"], s["seeds_together"]) for s in read_sittings(tmp_path / "run" / "seed0")] == [
+        (0, "fp32", 1),
+        (4, "fp32", 2),
+    ]
+    assert [(s["step"], s["seeds_together"]) for s in read_sittings(tmp_path / "run" / "seed1")] == [(0, 2)]
     assert "murm train place_in_box separated_q-global+adjacent +view dropout +hindsight goals seeds 0,1: 100%" in out
 
     alone, stacked = tmp_path / "alone", tmp_path / "run" / "seed1"

@@ -38,19 +38,21 @@ if TYPE_CHECKING:
 
 LOG_COLUMNS = ["step", "value_loss", "critic_loss", "actor_loss", "q", "v", "reward", "adv_weight", "steps_per_s"]
 EVAL_COLUMNS = ["step", "mask_p", "success_rate", "episodes", "seconds", "split", "mask_mode"]
-SITTINGS_COLUMNS = ["step", "precision", "machine", "started"]
+SITTINGS_COLUMNS = ["step", "precision", "seeds_together", "machine", "started"]
 SITTINGS_FILE = "sittings.csv"
 DTYPE_NAMES = {torch.bfloat16: "bf16", torch.float32: "fp32"}
 
 
-def record_sitting(run_dir: Path, step: int, dtype: torch.dtype, device: torch.device) -> None:
+def record_sitting(run_dir: Path, step: int, dtype: torch.dtype, seeds_together: int, device: torch.device) -> None:
     """A row for a sitting that trains the run on from `step`: the dtype `precision: auto`
-    resolved to on its machine, and the machine. A long run moves between machines (bf16 on
-    CPUs with native bf16, fp32 elsewhere), so its record says which part trained how."""
+    resolved to on its machine, how many seeds it trains stacked with it (1: one after another,
+    as on CPUs without native bf16) and the machine. A long run moves between machines, so its
+    record says which part trained how."""
     machine = torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_description()
     row = {
         "step": step,
         "precision": DTYPE_NAMES[dtype],
+        "seeds_together": seeds_together,
         "machine": machine,
         "started": datetime.now(UTC).isoformat(timespec="seconds"),
     }
@@ -63,7 +65,9 @@ def read_sittings(run_dir: Path) -> list[dict]:
     if not path.exists():
         return []
     with path.open(newline="") as f:
-        return [row | {"step": int(row["step"])} for row in csv.DictReader(f)]
+        return [
+            row | {"step": int(row["step"]), "seeds_together": int(row["seeds_together"])} for row in csv.DictReader(f)
+        ]
 
 
 def save_checkpoint(

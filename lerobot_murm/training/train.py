@@ -238,6 +238,9 @@ def _train_seeds(configs: list[TrainConfig]) -> list[dict]:
     replay = replay_for_dataset(first.policy, dataset, Path(first.cache_dir), device)
     runs = [_open_run(c, state, dataset, replay, device) for c, state in zip(todo, states, strict=True)]
     together = stacking_pays(device) if first.stack is None else first.stack
+    dtype = resolve_precision(first.policy.precision, device)
+    for run in runs:  # this sitting in each run's record: its precision, seeds stacked and machine
+        record_sitting(run.out, run.step, dtype, len(runs) if together else 1, device)
     while unfinished := [r for r in runs if r.summary is None]:
         start = min(r.step for r in unfinished)
         group = [r for r in unfinished if r.step == start]  # seeds a stopped run left behind catch up first
@@ -268,7 +271,6 @@ def _open_run(config: TrainConfig, state: dict | None, dataset, replay: LatentRe
         for name in ("log.csv", "eval.csv", SITTINGS_FILE):
             set_aside_rows_after(run.out / name, run.step)
         print(f"resuming from step {run.step} ({run.last})")
-    record_sitting(run.out, run.step, resolve_precision(config.policy.precision, device), device)
     write_config(config, run.out / "train_config.yaml")
     return run
 

@@ -6,7 +6,7 @@ from pathlib import Path
 import yaml
 
 from lerobot_murm.checkpointing import append_rows
-from lerobot_murm.training.run_folder import EVAL_COLUMNS, LOG_COLUMNS
+from lerobot_murm.training.run_folder import EVAL_COLUMNS, LOG_COLUMNS, SITTINGS_COLUMNS, SITTINGS_FILE
 
 sys.path.insert(0, str(Path(__file__).parent / "helpers"))
 from commands import run_command
@@ -96,6 +96,17 @@ def test_time_left_goes_by_the_runs_usual_rates_not_a_last_slowed_or_paused_one(
         write_run(runs / "single-global" / f"seed{seed}", steps, [0.0, 0.5, 0.5, 1.0], rates, seconds)
     time_left = status_rows(murm_status(tmp_path))["single-global"][-1]
     assert time_left == "3.3"  # as at 2 updates/s and 900 s a point (28.3 h at the last rate, 7.8 h at the last point)
+
+
+def test_time_left_counts_seeds_that_train_one_after_another_as_their_sittings_record(tmp_path):
+    """On a CPU without native bf16 a job's seeds train one after another (their sittings say
+    so): seed 0 half way and seed 1 not started is one and a half runs left, not half of one."""
+    runs = tmp_path / "work" / "runs" / "status_grid" / "place_in_box"
+    write_run(runs / "single-global" / "seed0", [10_000, 20_000], [0.5, 1.0], rate=2.0, eval_s=900.0)
+    sitting = {"step": 0, "precision": "fp32", "seeds_together": 1, "machine": "AMD EPYC", "started": "2026-12-08"}
+    append_rows(runs / "single-global" / "seed0" / SITTINGS_FILE, SITTINGS_COLUMNS, [sitting])
+    # seed 0: 20,000 updates at 2 updates/s and two points of 900 s; seed 1: 40,000 and four (stacked: 3.3 h)
+    assert status_rows(murm_status(tmp_path))["single-global"] == ["training", "0", "40,000", "", "9.8"]
 
 
 def test_status_of_a_grid_with_no_run_yet_says_so_and_draws_nothing(tmp_path):

@@ -27,6 +27,7 @@ from lerobot_murm.experiments.configuration_reproduce import CellSpec, Reproduce
 from lerobot_murm.experiments.results import plot_curves, read_result
 from lerobot_murm.experiments.reuse import kept_as_finished, ready_to_test, run_recipe, same_run, tested_at_budget
 from lerobot_murm.training.learning_curve import read_run_csv, validation_curve
+from lerobot_murm.training.run_folder import read_sittings
 
 NOT_STARTED, TRAINING, AT_CAP, FINISHED = "not started", "training", "at the cap", "finished"
 
@@ -36,14 +37,19 @@ class CellStatus:
     task: str
     cell: CellSpec
     state: str
-    step: int  # the step every seed has logged (the slowest seed's)
+    seed_steps: list[int]  # the step each seed has logged
     target: int  # the cap (a budget grid) or the cell's updates
     validation: tuple[int, float] | None  # (step, seeds' mean success 0-1) unmasked, at the latest step all share
     steps_per_s: float | None  # the median logged training rate of its slowest seed (evaluations left out)
     eval_s: float | None  # median seconds of its validation points (all masking levels of one)
-    seeds_per_job: int  # seeds one job trains together (a stack), 1 where each seed is its own job
+    seeds_per_job: int  # seeds one job trains together (a stack), 1 where each trains alone
     episodes_per_point: int  # a validation point's episodes: masking levels x episodes x seeds_per_job
     curves: list[dict] = field(default_factory=list)  # per seed: {"task", "cell", "curve"} as plot_curves reads
+
+    @property
+    def step(self) -> int:
+        """The step every seed has logged (the slowest seed's)."""
+        return min(self.seed_steps)
 
     @property
     def family(self) -> tuple[str, int, int]:
@@ -79,9 +85,9 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
     )
     logs = [read_run_csv(run / "log.csv") for run in runs]
     evals = [validation_curve(read_run_csv(run / "eval.csv")) for run in runs]
-    step = min((int(rows[-1]["step"]) if rows else 0) for rows in logs)
+    seed_steps = [int(rows[-1]["step"]) if rows else 0 for rows in logs]
     if finished or at_cap:
-        step = max(step, target)
+        seed_steps = [max(s, target) for s in seed_steps]
     rates = [statistics.median(r["steps_per_s"] for r in rows) for rows in logs if rows]
     unmasked = [{int(r["step"]): r["success_rate"] for r in points if r["mask_p"] == 0} for points in evals]
     shared = set.intersection(*(set(points) for points in unmasked))
@@ -100,10 +106,15 @@ def cell_status(config: ReproduceConfig, task: str, cell: CellSpec, cap: int) ->
         if points
     ]
     together = len(config.seeds) if config.stack_seeds and not config.timed else 1
+    # as the latest sitting trained them: on a CPU without native bf16 a job's seeds train one
+    # after another (seed_stack.stacking_pays)
+    sittings = [row for run in runs for row in read_sittings(run)]
+    if sittings:
+        together = max(sittings, key=lambda row: row["started"])["seeds_together"]
     episodes = config.budget.episodes if config.budget else config.train.eval_episodes
     rate = min(rates) if rates else None
     per_point = len(cell.eval_mask_p) * episodes * together
-    return CellStatus(task, cell, state, step, target, validation, rate, eval_s, together, per_point, curves)
+    return CellStatus(task, cell, state, seed_steps, target, validation, rate, eval_s, together, per_point, curves)
 
 
 def grid_status(config: ReproduceConfig) -> list[CellStatus]:
@@ -128,8 +139,10 @@ def hours_left(status: CellStatus, cells: list[CellStatus], config: ReproduceCon
     if rate is None or eval_s is None:
         return None
     every = config.budget.every if config.budget else config.train.eval_every
-    seconds = (status.target - status.step) / rate + (status.target // every - status.step // every) * eval_s
-    return seconds / 3600 * len(config.seeds) / status.seeds_per_job
+    seconds = sum(
+        (status.target - s) / rate + (status.target // every - s // every) * eval_s for s in status.seed_steps
+    )
+    return seconds / 3600 / status.seeds_per_job
 
 
 def status_markdown(

@@ -18,7 +18,7 @@ from test_reproduce import MURM, REPO, TINY
 from lerobot_murm.experiments.executors import ProcessExecutor, SerialExecutor, make_executor
 
 RAY = Path(sys.executable).parent / "ray"
-TIMING_FIELDS = ("wall_s", "train_steps_per_s")
+TIMING_FIELDS = ("wall_s", "train_steps_per_s", "sittings")  # sittings: when each began (a killed run has two)
 
 
 def _threads() -> int:
@@ -129,7 +129,7 @@ def _task_processes(name: str) -> list[int]:
 
 
 def _without_timings(result: dict) -> dict:
-    """A run's result less its wall times (the evaluations' `seconds` included)."""
+    """A run's result less its wall times (the evaluations' `seconds` included) and sittings."""
 
     def strip(value):
         if isinstance(value, list):

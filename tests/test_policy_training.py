@@ -441,7 +441,8 @@ def test_seeds_side_by_side_killed_with_sigkill_resume_every_seed(tiny_pipeline,
         final_eval_episodes=1,
         eval_envs=1,
     )
-    command = [str(BIN / "murm"), "train", "--config", str(config), "--seeds=[0,1]"]
+    # stacked on any CPU (without native bf16 they would train one after another by default)
+    command = [str(BIN / "murm"), "train", "--config", str(config), "--seeds=[0,1]", "--stack=true"]
     trainer = subprocess.Popen(
         command,
         cwd=tmp_path,

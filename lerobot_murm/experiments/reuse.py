@@ -54,8 +54,10 @@ def same_run(stored: dict | None, recipe: dict) -> bool:
     a grid that moves between machines would set aside, and train or test again, every run it
     has. A cell that names its precision keeps it. Each run records its sittings' precision and
     machine; another grid's runs are taken only for the very same recipe (`finished_elsewhere`)."""
-    if stored is None or same_recipe(stored, recipe):
-        return stored is not None
+    if stored is None:
+        return False
+    if same_recipe(stored, recipe):
+        return True
     return "precision" not in recipe["policy"] and same_recipe(stored | {"precision": recipe["precision"]}, recipe)
 
 
